@@ -1,0 +1,43 @@
+"""Batched SO(3)/SE(3) geometry, quaternions, the pinhole camera and rigid alignment."""
+
+from .align import umeyama_alignment
+from .camera import PinholeCamera, backproject_depth, intrinsics_matrix, project_points, scale_intrinsics
+from .lie import (
+    SMALL_ANGLE,
+    se3_act,
+    se3_adjoint,
+    se3_compose,
+    se3_exp,
+    se3_from_Rt,
+    se3_inverse,
+    se3_log,
+    skew,
+    so3_exp,
+    so3_log,
+    vex,
+)
+from .quaternion import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw
+
+__all__ = [
+    "PinholeCamera",
+    "SMALL_ANGLE",
+    "backproject_depth",
+    "intrinsics_matrix",
+    "project_points",
+    "quat_xyzw_slerp",
+    "quat_xyzw_to_rotmat",
+    "rotmat_to_quat_xyzw",
+    "scale_intrinsics",
+    "se3_act",
+    "se3_adjoint",
+    "se3_compose",
+    "se3_exp",
+    "se3_from_Rt",
+    "se3_inverse",
+    "se3_log",
+    "skew",
+    "so3_exp",
+    "so3_log",
+    "umeyama_alignment",
+    "vex",
+]
