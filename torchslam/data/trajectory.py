@@ -38,6 +38,8 @@ class Trajectory:
         dims: dict[str, int] = {}
         check_shape(self.timestamps, "N", "timestamps", dims)
         check_shape(self.T_wc, "N 4 4", "T_wc", dims)
+        if self.timestamps.dtype != torch.float64:
+            raise ShapeError(f"timestamps: expected float64, got {self.timestamps.dtype}")
         if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
             raise ShapeError("timestamps: must be strictly increasing")
 
@@ -80,8 +82,10 @@ class Trajectory:
             valid: (M,) bool.
         """
         check_shape(times, "M", "times")
+        if times.dtype != torch.float64:
+            # float32 cannot hold Unix-epoch timestamps to better than ~100 s.
+            raise ShapeError(f"times: expected float64 timestamps, got {times.dtype}")
         t = self.timestamps
-        times = times.to(torch.float64)
         if len(self) == 0:
             M = times.shape[0]
             return torch.eye(4, dtype=torch.float64).expand(M, 4, 4).clone(), torch.zeros(M, dtype=torch.bool)
