@@ -1,0 +1,108 @@
+"""The frame record every sequence yields, the interface sequences share, and timestamp association."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import ShapeError, check_shape
+from ..geometry import PinholeCamera
+from .trajectory import Trajectory
+
+__all__ = ["Frame", "Sequence", "associate_timestamps"]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One RGB-D frame.
+
+    Attributes:
+        index: position of the frame in its sequence (after stride and range selection).
+        timestamp: seconds (the colour image's timestamp).
+        rgb: (3, H, W) float32 colour in [0, 1].
+        depth: (1, H, W) float32 depth in metres, 0 = invalid.
+        T_wc: (4, 4) float64 ground-truth camera-to-world pose, or None where there is none.
+    """
+
+    index: int
+    timestamp: float
+    rgb: Tensor
+    depth: Tensor
+    T_wc: Tensor | None = None
+
+
+@runtime_checkable
+class Sequence(Protocol):
+    """What a system needs from a sequence; ``TUMSequence`` and ``SyntheticSequence`` provide it.
+
+    ``timestamps`` is (N,) float64 seconds; ``groundtruth`` holds the ground-truth pose of each
+    frame that has one (a Trajectory over a subset of ``timestamps``) or is None.
+    """
+
+    name: str
+    camera: PinholeCamera
+    timestamps: Tensor
+    groundtruth: Trajectory | None
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> Frame: ...
+
+    def __iter__(self) -> Iterator[Frame]: ...
+
+
+def associate_timestamps(first: Tensor, second: Tensor, max_gap: float = 0.02) -> tuple[Tensor, Tensor]:
+    """Match two timestamp lists one-to-one, closest pairs first, within ``max_gap`` seconds.
+
+    This is the TUM RGB-D benchmark's association rule: every candidate pair closer than
+    ``max_gap`` is considered in order of increasing gap and accepted when neither of its
+    stamps is taken yet. Unlike a nearest-neighbour lookup, no stamp is used twice, so two
+    colour frames never share one depth image.
+
+    Args:
+        first: (N,) float64 timestamps, seconds.
+        second: (M,) float64 timestamps, seconds.
+        max_gap: largest accepted |t_first - t_second|, seconds.
+
+    Returns:
+        idx_first, idx_second: (K,) int64 indices of matched pairs, sorted by ``idx_first``.
+    """
+    check_shape(first, "N", "first")
+    check_shape(second, "M", "second")
+    if max_gap < 0:
+        raise ShapeError(f"max_gap: must be >= 0, got {max_gap}")
+    a = first.detach().cpu().to(torch.float64).numpy()
+    b = second.detach().cpu().to(torch.float64).numpy()
+    if a.size == 0 or b.size == 0:
+        empty = torch.zeros(0, dtype=torch.int64)
+        return empty, empty.clone()
+    order_b = np.argsort(b, kind="stable")
+    bs = b[order_b]
+    lo = np.searchsorted(bs, a - max_gap, side="left")
+    hi = np.searchsorted(bs, a + max_gap, side="right")
+    counts = hi - lo
+    ia = np.repeat(np.arange(a.size), counts)
+    offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    ib_sorted = np.repeat(lo, counts) + offsets
+    gaps = np.abs(a[ia] - bs[ib_sorted])
+    keep = gaps <= max_gap
+    ia, ib, gaps = ia[keep], order_b[ib_sorted[keep]], gaps[keep]
+    used_a = np.zeros(a.size, dtype=bool)
+    used_b = np.zeros(b.size, dtype=bool)
+    out_a, out_b = [], []
+    # Greedy over candidate pairs (a handful per stamp); this is I/O set-up, not a hot path.
+    for k in np.lexsort((ib, ia, gaps)):
+        i, j = ia[k], ib[k]
+        if not used_a[i] and not used_b[j]:
+            used_a[i] = used_b[j] = True
+            out_a.append(i)
+            out_b.append(j)
+    order = np.argsort(np.asarray(out_a, dtype=np.int64), kind="stable")
+    return (
+        torch.as_tensor(np.asarray(out_a, dtype=np.int64)[order]),
+        torch.as_tensor(np.asarray(out_b, dtype=np.int64)[order]),
+    )
