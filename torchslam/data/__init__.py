@@ -1,6 +1,25 @@
 """Sequences and trajectories: TUM RGB-D reader, synthetic RGB-D-inertial generator, trajectory I/O."""
 
+from .calibration import INTRINSICS_PRESETS, Calibration, CameraPreset, preset_for_name, read_calibration, resolve_calibration
 from .frame import Frame, Sequence, associate_timestamps
 from .trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+from .tum import AssociationStats, CorruptImageError, TUMSequence, sequence_info
 
-__all__ = ["Frame", "Sequence", "Trajectory", "associate_timestamps", "read_tum_trajectory", "write_tum_trajectory"]
+__all__ = [
+    "INTRINSICS_PRESETS",
+    "AssociationStats",
+    "Calibration",
+    "CameraPreset",
+    "CorruptImageError",
+    "Frame",
+    "Sequence",
+    "TUMSequence",
+    "Trajectory",
+    "associate_timestamps",
+    "preset_for_name",
+    "read_calibration",
+    "read_tum_trajectory",
+    "resolve_calibration",
+    "sequence_info",
+    "write_tum_trajectory",
+]

@@ -1,0 +1,199 @@
+"""Camera calibration of RGB-D sequences: TUM/ICL-NUIM presets and per-folder ``calibration.txt``.
+
+Convention:
+    Intrinsics are pixels with pixel centres at integer coordinates (``u = fx x / z + cx``), as
+    everywhere in torchslam. ``depth_scale`` converts raw 16-bit depth to metres:
+    ``metres = raw / depth_scale`` (5000 for TUM RGB-D and ICL-NUIM, 1000 for millimetre sensors).
+
+A ``calibration.txt`` holds, after any ``#`` comment lines, exactly one line
+``fx fy cx cy depth_scale width height``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import DataFormatError, ShapeError
+from ..geometry import PinholeCamera
+
+__all__ = ["CameraPreset", "Calibration", "INTRINSICS_PRESETS", "preset_for_name", "read_calibration", "resolve_calibration"]
+
+CALIBRATION_FILE = "calibration.txt"
+
+
+@dataclass(frozen=True)
+class CameraPreset:
+    """Published intrinsics of a camera: pinhole model and raw-depth-to-metres divisor."""
+
+    camera: PinholeCamera
+    depth_scale: float
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The calibration a sequence uses and where it came from.
+
+    Attributes:
+        camera: pinhole intrinsics and image size.
+        depth_scale: raw depth units per metre.
+        source: ``"preset:<name>"``, ``"calibration.txt"``, ``"argument"`` or a mix such as
+            ``"argument (camera), calibration.txt (depth_scale)"``.
+    """
+
+    camera: PinholeCamera
+    depth_scale: float
+    source: str
+
+
+# TUM RGB-D "ROS default" intrinsics per Kinect (freiburg1/2/3) and ICL-NUIM, all 640x480 with
+# depth scale 5000. ICL-NUIM publishes fy = -480.0 because its renderer's image y axis points up;
+# the TUM-format ICL-NUIM release stores images with y down, so torchslam uses fy = +480.0.
+INTRINSICS_PRESETS: dict[str, CameraPreset] = {
+    "freiburg1": CameraPreset(PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480), 5000.0),
+    "freiburg2": CameraPreset(PinholeCamera(520.9, 521.0, 325.1, 249.7, 640, 480), 5000.0),
+    "freiburg3": CameraPreset(PinholeCamera(535.4, 539.2, 320.1, 247.6, 640, 480), 5000.0),
+    "icl_nuim": CameraPreset(PinholeCamera(481.20, 480.00, 319.50, 239.50, 640, 480), 5000.0),
+}
+
+# A preset name inside a folder name: "freiburg1"/"fr1" (not "fr12"), or "icl" as a word start.
+_PRESET_PATTERNS = [
+    (re.compile(r"(?<![a-z0-9])(?:freiburg|fr)_?([123])(?![0-9])"), lambda m: f"freiburg{m.group(1)}"),
+    (re.compile(r"(?<![a-z])icl(?![a-z])"), lambda m: "icl_nuim"),
+]
+
+
+def preset_for_name(name: str) -> str | None:
+    """Return the preset key a sequence folder name implies, or None.
+
+    ``rgbd_dataset_freiburg1_xyz`` and ``tum_fr1_xyz`` give ``"freiburg1"``; ``icl_living_room``
+    gives ``"icl_nuim"``.
+    """
+    low = name.lower()
+    for pattern, key in _PRESET_PATTERNS:
+        match = pattern.search(low)
+        if match:
+            return key(match)
+    return None
+
+
+def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
+    """Read a ``calibration.txt``: one line ``fx fy cx cy depth_scale width height``.
+
+    Blank lines and lines starting with ``#`` are skipped.
+
+    Args:
+        path: the calibration file.
+
+    Returns:
+        camera: pinhole intrinsics (pixels) and image size.
+        depth_scale: raw depth units per metre.
+
+    Raises:
+        DataFormatError: naming the file (and line) for an unreadable file, a missing or repeated
+            data line, a wrong number of values, a non-number, or a non-positive value.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFormatError(f"{path}: cannot read calibration ({exc})") from exc
+    found: tuple[int, list[str]] | None = None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        if found is not None:
+            raise DataFormatError(
+                f"{path}:{lineno}: a second calibration line (line {found[0]} already gives one); "
+                "expected exactly one line 'fx fy cx cy depth_scale width height'"
+            )
+        found = (lineno, s.split())
+    if found is None:
+        raise DataFormatError(f"{path}: no calibration line; expected one line 'fx fy cx cy depth_scale width height'")
+    lineno, parts = found
+    where = f"{path}:{lineno}"
+    if len(parts) != 7:
+        raise DataFormatError(f"{where}: expected 7 values 'fx fy cx cy depth_scale width height', got {len(parts)}")
+    try:
+        fx, fy, cx, cy, depth_scale = (float(v) for v in parts[:5])
+    except ValueError as exc:
+        raise DataFormatError(f"{where}: not a number ({exc})") from exc
+    try:
+        width, height = (int(v) for v in parts[5:])
+    except ValueError as exc:
+        raise DataFormatError(f"{where}: width and height must be integers, got {parts[5]!r} {parts[6]!r}") from exc
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy, depth_scale)):
+        raise DataFormatError(f"{where}: NaN or infinite value")
+    if depth_scale <= 0:
+        raise DataFormatError(f"{where}: depth_scale must be > 0, got {depth_scale}")
+    try:
+        camera = PinholeCamera(fx, fy, cx, cy, width, height)
+    except ShapeError as exc:
+        raise DataFormatError(f"{where}: {exc}") from exc
+    return camera, depth_scale
+
+
+def resolve_calibration(
+    root: str | os.PathLike,
+    camera: PinholeCamera | None = None,
+    depth_scale: float | None = None,
+) -> Calibration:
+    """Choose a sequence folder's calibration.
+
+    Each of the camera and the depth scale comes from, in order of precedence: the explicit
+    argument, the folder's ``calibration.txt``, the preset its folder name implies
+    (``freiburg1``/``fr1`` ... ``freiburg3``/``fr3``, ``icl``).
+
+    Args:
+        root: the sequence folder.
+        camera: explicit intrinsics, or None.
+        depth_scale: explicit raw depth units per metre, or None.
+
+    Returns:
+        The chosen calibration and its source.
+
+    Raises:
+        DataFormatError: when neither argument, file nor preset gives a value (the message says
+            to add ``calibration.txt``), or ``calibration.txt`` is malformed.
+        ShapeError: for a ``camera`` that is not a PinholeCamera or a non-positive ``depth_scale``.
+    """
+    root = Path(root)
+    if camera is not None and not isinstance(camera, PinholeCamera):
+        raise ShapeError(f"camera: expected a PinholeCamera, got {type(camera).__name__}")
+    if depth_scale is not None:
+        try:
+            ok = math.isfinite(float(depth_scale)) and float(depth_scale) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ShapeError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+        depth_scale = float(depth_scale)
+    fallback: tuple[PinholeCamera, float] | None = None
+    fallback_source = ""
+    calib_path = root / CALIBRATION_FILE
+    if calib_path.is_file():
+        fallback, fallback_source = read_calibration(calib_path), CALIBRATION_FILE
+    else:
+        key = preset_for_name(root.resolve().name)
+        if key is not None:
+            preset = INTRINSICS_PRESETS[key]
+            fallback, fallback_source = (preset.camera, preset.depth_scale), f"preset:{key}"
+    if fallback is None and (camera is None or depth_scale is None):
+        missing = " and ".join(n for n, v in (("camera", camera), ("depth_scale", depth_scale)) if v is None)
+        raise DataFormatError(
+            f"{root}: no calibration for this sequence: there is no {CALIBRATION_FILE} and the folder name "
+            f"names no preset ({', '.join(INTRINSICS_PRESETS)}; e.g. 'fr1' or 'icl'). Add {calib_path} with one "
+            f"line 'fx fy cx cy depth_scale width height', or pass {missing} explicitly."
+        )
+    cam_src = "argument" if camera is not None else fallback_source
+    scale_src = "argument" if depth_scale is not None else fallback_source
+    source = cam_src if cam_src == scale_src else f"{cam_src} (camera), {scale_src} (depth_scale)"
+    return Calibration(
+        camera if camera is not None else fallback[0],
+        depth_scale if depth_scale is not None else fallback[1],
+        source,
+    )
