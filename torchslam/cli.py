@@ -1,0 +1,193 @@
+"""The ``torchslam`` command line: run, eval, info, synth.
+
+Each subcommand parses its arguments, calls one library function and prints its result.
+Errors that torchslam raises on purpose print one line naming the file, line or argument and
+exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Sequence as Seq
+
+from .errors import TorchSlamError
+
+logger = logging.getLogger("torchslam")
+
+DEFAULT_SYSTEM = "nislam"
+
+
+def _add_run(sub) -> None:
+    from .slam.registry import KNOWN_SYSTEMS
+
+    p = sub.add_parser("run", help="run a SLAM system on a sequence and write a run folder")
+    p.add_argument("--system", default=DEFAULT_SYSTEM, help=f"one of {', '.join(KNOWN_SYSTEMS)} (default {DEFAULT_SYSTEM})")
+    p.add_argument("--data", default="synthetic", help="a TUM-layout folder, or 'synthetic' (default) for the built-in sequence")
+    p.add_argument("--out", default=None, help="run folder (default logs/<system>-<data>-<time>)")
+    p.add_argument("--config", default=None, help="YAML file overriding the system's defaults (see configs/)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config value, e.g. --set sigma=0.3 or --set data.stride=2 (repeatable)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _cmd_run(args) -> int:
+    from .slam.registry import get_system
+
+    get_system(args.system)  # fail fast, before any data is touched
+    from .slam.run import RunOptions, default_out_dir, run
+
+    if args.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise _ArgError("--device cuda: no CUDA device is available to this PyTorch build")
+    out = Path(args.out) if args.out else default_out_dir(args.system, args.data)
+    options = RunOptions(
+        system=args.system, data=args.data, out=out, device=args.device,
+        tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
+    )
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        def progress(frames):
+            return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False)
+
+    metrics = run(options, config_path=args.config, overrides=args.overrides, progress=progress)
+    ate_m = metrics.get("ate_rmse_m")
+    ate_txt = f"{ate_m * 100:.2f} cm" if ate_m is not None else "n/a (no ground truth)"
+    status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
+    print(
+        f"{args.system} on {metrics['sequence']}{status}: {metrics['tracked_frames']}/{metrics['frames']} frames tracked, "
+        f"{metrics['keyframes']} keyframes, ATE RMSE {ate_txt}, "
+        f"{metrics['fps_end_to_end']:.1f} frames/s end-to-end ({metrics['fps_compute']:.1f} compute-only)"
+    )
+    print(f"run folder: {out}")
+    return 0
+
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)")
+    p.add_argument("--est", required=True, help="estimated trajectory, TUM format")
+    p.add_argument("--gt", required=True, help="ground-truth trajectory, TUM format")
+    p.add_argument("--align", default="se3", choices=["se3", "sim3", "none"], help="alignment before ATE (default se3)")
+    p.add_argument("--max-dt", type=float, default=0.02, help="largest timestamp gap when matching poses, seconds")
+    p.add_argument("--delta", type=float, default=1, help="RPE step (default 1)")
+    p.add_argument("--delta-unit", default="frames", choices=["frames", "seconds"], help="unit of --delta")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+
+def _cmd_eval(args) -> int:
+    from .data.trajectory import read_tum_trajectory
+    from .eval import ate, format_report, metrics_dict, rpe
+
+    est = read_tum_trajectory(args.est)
+    gt = read_tum_trajectory(args.gt)
+    delta = int(args.delta) if args.delta_unit == "frames" else args.delta
+    if args.delta_unit == "frames" and delta != args.delta:
+        raise _ArgError(f"--delta {args.delta}: a step in frames must be a whole number")
+    a = ate(est, gt, align=args.align, max_dt=args.max_dt)
+    r = rpe(est, gt, delta=delta, unit=args.delta_unit, align=args.align, max_dt=args.max_dt)
+    if args.json:
+        print(json.dumps(metrics_dict(a, r), indent=2))
+    else:
+        print(format_report(a, r))
+    return 0
+
+
+def _add_info(sub) -> None:
+    p = sub.add_parser("info", help="describe a TUM-layout sequence folder")
+    p.add_argument("dir", help="sequence folder")
+    p.add_argument("--json", action="store_true", help="print JSON")
+
+
+def _cmd_info(args) -> int:
+    from .data.tum import sequence_info
+
+    info = sequence_info(args.dir)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    width = max(len(k) for k in info)
+    for k, v in info.items():
+        if isinstance(v, dict):
+            v = ", ".join(f"{kk}={vv}" for kk, vv in v.items())
+        elif isinstance(v, float):
+            v = f"{v:.6g}"
+        print(f"{k:<{width}}  {v}")
+    return 0
+
+
+def _add_synth(sub) -> None:
+    p = sub.add_parser("synth", help="write a synthetic RGB-D-inertial sequence as a TUM-layout folder")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trajectory", default=None, help="trajectory kind (see the synthetic generator)")
+    p.add_argument("--width", type=int, default=None)
+    p.add_argument("--height", type=int, default=None)
+    p.add_argument("--no-noise", action="store_true", help="exact depth (no Kinect-like noise or holes)")
+
+
+def _cmd_synth(args) -> int:
+    from .config import config_from_dict
+    from .data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
+
+    changes = {"frames": args.frames, "seed": args.seed}
+    for key in ("trajectory", "width", "height"):
+        if getattr(args, key) is not None:
+            changes[key] = getattr(args, key)
+    if args.no_noise:
+        changes["depth_noise"] = False
+    cfg = config_from_dict(SyntheticConfig, changes, source="torchslam synth")
+    seq = generate_sequence(cfg)
+    write_tum_folder(seq, args.out)
+    print(f"wrote {len(seq)} frames ({cfg.width}x{cfg.height}, trajectory {cfg.trajectory}, seed {cfg.seed}) to {args.out}")
+    return 0
+
+
+class _ArgError(TorchSlamError, ValueError):
+    pass
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="torchslam", description="Batched RGB-D SLAM in PyTorch (GC-SLAM/FastGO, NI-SLAM/KCC).")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_run, _add_eval, _add_info, _add_synth):
+        add(sub)
+    return parser
+
+
+COMMANDS = {"run": _cmd_run, "eval": _cmd_eval, "info": _cmd_info, "synth": _cmd_synth}
+
+
+def main(argv: Seq[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if args.command is None:
+        # A bare `torchslam` runs the default job, the same as `torchslam run`.
+        args = parser.parse_args(["run", *(argv or [])] if argv is not None else ["run"])
+    try:
+        return COMMANDS[args.command](args)
+    except TorchSlamError as exc:
+        print(f"torchslam {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"torchslam {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

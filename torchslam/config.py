@@ -1,0 +1,209 @@
+"""Configuration: frozen dataclass defaults in code, YAML files and ``key=value`` overrides on top.
+
+A config is a (possibly nested) frozen dataclass. YAML files in ``configs/`` and command-line
+``--set key=value`` pairs only override fields that exist; an unknown key is an error that names
+the key (and the file). The resolved config is saved with every run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import os
+import types
+import typing
+from pathlib import Path
+from typing import Any, Mapping, TypeVar
+
+import yaml
+
+from .errors import ConfigError
+
+__all__ = ["config_from_dict", "config_to_dict", "load_config", "parse_overrides", "save_config"]
+
+C = TypeVar("C")
+
+
+def _field_types(cls) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{where}{key}: invalid value {value!r}")
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}{key}: expected a mapping of {tp.__name__} fields, got {value!r}")
+        return _build(tp, value, prefix=f"{key}.", where=where)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        if isinstance(value, tp):
+            return value
+        valid = [m.value for m in tp]
+        for m in tp:
+            if value == m.value or value == m.name:
+                return m
+        raise ConfigError(f"{where}{key}: {value!r} is not one of {valid}")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}{key}: expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}{key}: expected a string, got {value!r}")
+        return value
+    if origin in (tuple, list):
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}{key}: expected a list, got {value!r}")
+        if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], key, where) for v in value)
+        if origin is tuple and args:
+            if len(args) != len(value):
+                raise ConfigError(f"{where}{key}: expected {len(args)} values, got {len(value)}")
+            return tuple(_coerce(v, a, key, where) for v, a in zip(value, args))
+        return list(value) if origin is list else tuple(value)
+    return value
+
+
+def _build(cls, data: Mapping[str, Any], prefix: str = "", where: str = ""):
+    types_ = _field_types(cls)
+    unknown = sorted(set(data) - set(types_))
+    if unknown:
+        raise ConfigError(
+            f"{where}{prefix}{unknown[0]}: unknown key for {cls.__name__}; valid keys: {', '.join(sorted(types_))}"
+        )
+    base = cls()
+    kwargs = {}
+    for name, value in data.items():
+        tp = types_[name]
+        current = getattr(base, name)
+        if dataclasses.is_dataclass(tp) and isinstance(value, Mapping):
+            merged = {**config_to_dict(current), **value} if current is not None else dict(value)
+            kwargs[name] = _build(tp, merged, prefix=f"{prefix}{name}.", where=where)
+        else:
+            kwargs[name] = _coerce(value, tp, f"{prefix}{name}", where)
+    try:
+        return dataclasses.replace(base, **kwargs)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"{where}{prefix.rstrip('.') or cls.__name__}: {exc}") from exc
+
+
+def config_from_dict(cls: type[C], data: Mapping[str, Any] | None, source: str | None = None) -> C:
+    """Build a config dataclass from a nested mapping; missing keys keep their defaults.
+
+    Raises:
+        ConfigError: for an unknown key or a value of the wrong type, naming the dotted key and
+            ``source`` (a file name) when given.
+    """
+    where = f"{source}: " if source else ""
+    if data is None:
+        return cls()
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}expected a mapping at the top level, got {type(data).__name__}")
+    return _build(cls, data, where=where)
+
+
+def config_to_dict(cfg: Any) -> Any:
+    """Turn a config dataclass into plain YAML/JSON-serialisable data."""
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, enum.Enum):
+        return cfg.value
+    if isinstance(cfg, (list, tuple)):
+        return [config_to_dict(v) for v in cfg]
+    return cfg
+
+
+def parse_overrides(pairs: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    """Turn ``["a.b=1", "c=foo"]`` into a nested mapping; values are parsed as YAML scalars."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError(f"--set {pair!r}: expected key=value")
+        key, raw = pair.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise ConfigError(f"--set {pair!r}: empty key")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {key}: cannot parse value {raw!r} ({exc})") from exc
+        node = out
+        parts = key.split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {key}: {part} is set to a value and used as a section")
+        node[parts[-1]] = value
+    return out
+
+
+def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = _deep_merge(dict(out[k]), v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(cls: type[C], path: str | os.PathLike | None = None, overrides: list[str] | tuple[str, ...] = ()) -> C:
+    """Load ``cls`` defaults, then a YAML file, then ``key=value`` overrides.
+
+    Raises:
+        ConfigError: for a missing or malformed file (with line and column), an unknown key, or a
+            value of the wrong type.
+    """
+    data: dict[str, Any] = {}
+    source = None
+    if path is not None:
+        source = str(path)
+        try:
+            text = Path(path).read_text()
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read config ({exc.strerror or exc})") from exc
+        try:
+            loaded = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+            raise ConfigError(f"{path}{loc}: malformed YAML ({getattr(exc, 'problem', exc)})") from exc
+        if loaded is not None and not isinstance(loaded, Mapping):
+            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
+        data = dict(loaded or {})
+    over = parse_overrides(overrides)
+    if over:
+        # A bad key or value is reported against the layer it came from.
+        config_from_dict(cls, data, source=source)
+        source = "--set" if source is None else f"{source} + --set"
+        data = _deep_merge(data, over)
+    return config_from_dict(cls, data, source=source)
+
+
+def save_config(cfg: Any, path: str | os.PathLike) -> None:
+    """Write the resolved config as YAML."""
+    Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))

@@ -1,0 +1,149 @@
+"""What every SLAM system provides, and the loop that drives one over a sequence.
+
+A system is fed frames one at a time (``track``) and returns everything it estimated at the end
+(``finish``). The driver measures time spent waiting for frames (decode) separately from time
+spent inside the system (compute), turns Ctrl-C into a clean stop that keeps what was computed,
+and counts frames that the sequence had to skip.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Protocol
+
+import torch
+from torch import Tensor
+
+from ..data.frame import Frame, Sequence
+
+__all__ = ["SlamSystem", "SystemOutput", "RunResult", "empty_output", "run_sequence"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class SystemOutput:
+    """Everything a system estimated over one sequence.
+
+    Attributes:
+        frame_indices: (N,) int64 indices (into the sequence) of the frames that have a pose.
+        timestamps: (N,) float64 seconds of those frames.
+        T_wc: (N, 4, 4) float64 estimated camera-to-world poses, after the final optimisation.
+        keyframe_indices: (K,) int64 sequence indices of the keyframes.
+        keyframe_T_wc: (K, 4, 4) float64 keyframe poses.
+        map_points: optional (P, 3) float32 world points of the map, metres.
+        map_colors: optional (P, 3) float32 colours in [0, 1].
+        stage_ms: total milliseconds spent in each named stage.
+        metrics: system-specific figures (loops, PSR statistics, attitude source, ...).
+    """
+
+    frame_indices: Tensor
+    timestamps: Tensor
+    T_wc: Tensor
+    keyframe_indices: Tensor
+    keyframe_T_wc: Tensor
+    map_points: Tensor | None = None
+    map_colors: Tensor | None = None
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+class SlamSystem(Protocol):
+    """Interface of a SLAM system as the driver sees it."""
+
+    name: str
+
+    def start(self, sequence: Sequence) -> None:
+        """Prepare for a new sequence (camera, attitude stream, ...)."""
+
+    def track(self, frame: Frame) -> None:
+        """Process one frame."""
+
+    def finish(self) -> SystemOutput:
+        """Run any final optimisation and return the estimates."""
+
+
+@dataclass
+class RunResult:
+    """A system's output plus how the run went."""
+
+    output: SystemOutput
+    frames_total: int
+    frames_processed: int
+    frames_skipped: int
+    skipped: list[tuple[int, str]]
+    wall_s: float
+    compute_s: float
+    interrupted: bool
+
+    @property
+    def fps_end_to_end(self) -> float:
+        return self.frames_processed / self.wall_s if self.wall_s > 0 else 0.0
+
+    @property
+    def fps_compute(self) -> float:
+        return self.frames_processed / self.compute_s if self.compute_s > 0 else 0.0
+
+
+def run_sequence(
+    system: SlamSystem,
+    sequence: Sequence,
+    progress: Callable[[Iterable[Frame]], Iterable[Frame]] | None = None,
+    max_frames: int | None = None,
+) -> RunResult:
+    """Drive ``system`` over ``sequence`` and return its output and timings.
+
+    Ctrl-C (``KeyboardInterrupt``) stops the loop; the system is still asked to ``finish`` so
+    the frames processed so far are returned with ``interrupted=True``.
+
+    Args:
+        system: the SLAM system.
+        sequence: frames to process, in order.
+        progress: optional wrapper around the frame iterator (e.g. a progress bar).
+        max_frames: stop after this many frames.
+    """
+    frames: Iterable[Frame] = iter(sequence)
+    if progress is not None:
+        frames = progress(frames)
+    system.start(sequence)
+    processed, compute_s, interrupted = 0, 0.0, False
+    t_start = time.perf_counter()
+    try:
+        for frame in frames:
+            if max_frames is not None and processed >= max_frames:
+                break
+            t0 = time.perf_counter()
+            system.track(frame)
+            compute_s += time.perf_counter() - t0
+            processed += 1
+    except KeyboardInterrupt:
+        interrupted = True
+        logger.warning("interrupted after %d frames; finishing with what was computed", processed)
+    t0 = time.perf_counter()
+    output = system.finish()
+    t_end = time.perf_counter()
+    compute_s += t_end - t0
+    skipped = list(getattr(sequence, "skipped", []))
+    return RunResult(
+        output=output,
+        frames_total=len(sequence),
+        frames_processed=processed,
+        frames_skipped=len(skipped),
+        skipped=skipped,
+        wall_s=t_end - t_start,
+        compute_s=compute_s,
+        interrupted=interrupted,
+    )
+
+
+def empty_output(dtype: torch.dtype = torch.float64) -> SystemOutput:
+    """An output with no frames (a system that was stopped before its first frame)."""
+    return SystemOutput(
+        frame_indices=torch.zeros(0, dtype=torch.int64),
+        timestamps=torch.zeros(0, dtype=torch.float64),
+        T_wc=torch.zeros(0, 4, 4, dtype=dtype),
+        keyframe_indices=torch.zeros(0, dtype=torch.int64),
+        keyframe_T_wc=torch.zeros(0, 4, 4, dtype=dtype),
+    )
