@@ -1,0 +1,72 @@
+import enum
+from dataclasses import dataclass, field
+
+import pytest
+import yaml
+
+from torchslam.config import config_from_dict, config_to_dict, load_config, parse_overrides, save_config
+from torchslam.errors import ConfigError
+
+
+class Mode(enum.Enum):
+    FAST = "fast"
+    EXACT = "exact"
+
+
+@dataclass(frozen=True)
+class Inner:
+    sigma: float = 0.2
+    steps: int = 3
+
+
+@dataclass(frozen=True)
+class Outer:
+    name: str = "x"
+    mode: Mode = Mode.FAST
+    end: int | None = None
+    flag: bool = False
+    inner: Inner = field(default_factory=Inner)
+
+
+def test_defaults_file_and_overrides_layer(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("name: y\ninner:\n  sigma: 0.5\n")
+    cfg = load_config(Outer, path, ["inner.steps=7", "mode=exact", "end=12", "flag=true"])
+    assert cfg == Outer(name="y", mode=Mode.EXACT, end=12, flag=True, inner=Inner(sigma=0.5, steps=7))
+    # int accepted for a float field, None for an optional one
+    assert load_config(Outer, None, ["inner.sigma=1", "end=null"]).inner.sigma == 1.0
+
+
+def test_roundtrip_through_saved_yaml(tmp_path):
+    cfg = Outer(name="z", mode=Mode.EXACT, inner=Inner(0.3, 4))
+    save_config(cfg, tmp_path / "s.yaml")
+    assert yaml.safe_load((tmp_path / "s.yaml").read_text())["mode"] == "exact"
+    assert load_config(Outer, tmp_path / "s.yaml") == cfg
+    assert config_from_dict(Outer, config_to_dict(cfg)) == cfg
+
+
+def test_unknown_keys_and_bad_values_name_the_key_and_source(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("inner:\n  sigmaa: 0.5\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: inner.sigmaa: unknown key for Inner; valid keys: sigma, steps"):
+        load_config(Outer, path)
+    with pytest.raises(ConfigError, match=r"--set: mode: 'slow' is not one of \['fast', 'exact'\]"):
+        load_config(Outer, None, ["mode=slow"])
+    with pytest.raises(ConfigError, match=r"inner.steps: expected an integer, got 'many'"):
+        load_config(Outer, None, ["inner.steps=many"])
+    with pytest.raises(ConfigError, match=r"flag: expected true or false"):
+        load_config(Outer, None, ["flag=3"])
+    with pytest.raises(ConfigError, match=r"expected key=value"):
+        parse_overrides(["novalue"])
+
+
+def test_malformed_yaml_reports_line(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("name: a\ninner: [1, 2\nflag: true\n")
+    with pytest.raises(ConfigError, match=r"broken.yaml:\d+:\d+: malformed YAML"):
+        load_config(Outer, path)
+    path.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="expected a mapping at the top level"):
+        load_config(Outer, path)
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(Outer, tmp_path / "missing.yaml")
