@@ -120,7 +120,7 @@ def _cmd_info(args) -> int:
         if isinstance(v, dict):
             v = ", ".join(f"{kk}={vv}" for kk, vv in v.items())
         elif isinstance(v, float):
-            v = f"{v:.6g}"
+            v = f"{v:.6f}" if abs(v) >= 1e5 else f"{v:.6g}"
         print(f"{k:<{width}}  {v}")
     return 0
 
