@@ -1,0 +1,69 @@
+"""NI-SLAM front-end core: orthographic re-projection, kernel cross-correlator, PSR, depth translation, map fusion.
+
+Pure, batched functions over ``(B, ...)`` tensors plus the thin ``KernelCorrelator`` module.
+The pieces compose as (see each module for equations and conventions)::
+
+    points, grey, valid = rgbd_to_points(rgb, depth, intrinsics)
+    r_k = choose_resolution(points_k, valid_k)                            # at a new keyframe
+    kf = orthographic_project(points_k, grey_k, valid_k, None, r_k)
+    filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid), sigma, lam)
+    fr = orthographic_project(points_i, grey_i, valid_i, R_ki, r_k)       # R_ki = R_wk^T R_wi
+    pred = kcc_predict(kcc_features(fr.grey, fr.depth, fr.valid), filt, sigma, r_k)
+    dz = depth_translation(fr, kf, pred.index)
+    # scene content moved by t = (pred.t_xy, dz.t_z): the frame camera is at -t from the keyframe
+"""
+
+from .bench import benchmark_frontend
+from .correlator import (
+    ChannelNorm,
+    KCCConfig,
+    KCCFilter,
+    KCCPrediction,
+    KernelCorrelator,
+    Peak,
+    Subpixel,
+    find_peak,
+    kcc_features,
+    kcc_predict,
+    kcc_response,
+    kcc_train,
+    kernel_correlation,
+    peak_to_sidelobe,
+    shift_variance,
+    soft_argmax,
+    spectral_energy,
+)
+from .fusion import DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
+from .ortho import OrthoImages, choose_resolution, grey_from_rgb, orthographic_project, rgbd_to_points
+
+__all__ = [
+    "ChannelNorm",
+    "DepthTranslation",
+    "KCCConfig",
+    "KCCFilter",
+    "KCCPrediction",
+    "KernelCorrelator",
+    "KeyframeMap",
+    "OrthoImages",
+    "Peak",
+    "Subpixel",
+    "benchmark_frontend",
+    "choose_resolution",
+    "depth_translation",
+    "find_peak",
+    "fuse_keyframe",
+    "grey_from_rgb",
+    "kcc_features",
+    "kcc_predict",
+    "kcc_response",
+    "kcc_train",
+    "kernel_correlation",
+    "keyframe_map",
+    "orthographic_project",
+    "peak_to_sidelobe",
+    "rgbd_to_points",
+    "shift_image",
+    "shift_variance",
+    "soft_argmax",
+    "spectral_energy",
+]
