@@ -1,0 +1,241 @@
+"""Hamming distances and descriptor matching against NumPy bit counts and OpenCV's BFMatcher."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchslam.errors import ConfigError, DTypeError, ShapeError
+from torchslam.features import (
+    HammingKernel,
+    hamming_distance,
+    hamming_distance_packed,
+    match_descriptors,
+    match_descriptors_batched,
+    pack_descriptors,
+    pad_descriptors,
+    popcount64,
+)
+
+KERNELS = ["swar", "lut", "matmul", "auto"]
+
+
+def _rand(shape, gen):
+    return torch.randint(0, 256, shape, dtype=torch.uint8, generator=gen)
+
+
+def _ref_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Brute force: unpack both sets to bits and count differing bits for every pair."""
+    return np.unpackbits(a[..., :, None, :] ^ b[..., None, :, :], axis=-1).sum(-1)
+
+
+def _correlated(gen, k1=300, k2=400, flips=30):
+    """Sets where many d1 rows are noisy copies of d2 rows, so thresholds and ratios matter."""
+    b = _rand((k2, 32), gen)
+    src = torch.randint(0, k2, (k1,), generator=gen)
+    a = b[src].clone()
+    bits = torch.randint(0, 256, (k1, flips), generator=gen)
+    nflip = torch.randint(0, flips + 1, (k1,), generator=gen)
+    for j in range(flips):
+        on = nflip > j
+        byte, bit = bits[:, j] // 8, bits[:, j] % 8
+        a[on, byte[on]] ^= (1 << bit[on]).to(torch.uint8)
+    a[: k1 // 5] = _rand((k1 // 5, 32), gen)  # some queries with no counterpart
+    return a, b
+
+
+def test_popcount64_matches_numpy_including_sign_bit():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randint(-(2**63), 2**63 - 1, (5000,), dtype=torch.int64, generator=gen)
+    x[:4] = torch.tensor([0, -1, -(2**63), 2**63 - 1])
+    ref = np.unpackbits(x.numpy().view(np.uint8).reshape(-1, 8), axis=-1).sum(-1)
+    assert np.array_equal(popcount64(x).numpy(), ref)
+    assert popcount64(x[:4]).tolist() == [0, 64, 1, 63]
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_hamming_distance_equals_unpackbits_reference(kernel):
+    gen = torch.Generator().manual_seed(1)
+    a, b = _rand((257, 32), gen), _rand((130, 32), gen)
+    a[0], b[0] = 0, 255  # distance 256 overflows a one-byte total
+    a[1], b[1] = 255, 255
+    d = hamming_distance(a, b, kernel)
+    assert d.dtype == torch.int32 and d.shape == (257, 130)
+    ref = _ref_distance(a.numpy(), b.numpy())
+    assert np.array_equal(d.numpy(), ref)
+    assert d[0, 0] == 256 and d[1, 1] == 0
+
+
+@pytest.mark.parametrize("kernel", ["swar", "lut", "matmul"])
+@pytest.mark.parametrize("lead", [(), (1,), (5,), (2, 3)])
+def test_hamming_distance_batch_shapes_equal_per_item(kernel, lead):
+    gen = torch.Generator().manual_seed(2)
+    a, b = _rand((*lead, 17, 32), gen), _rand((*lead, 9, 32), gen)
+    d = hamming_distance(a, b, kernel)
+    assert d.shape == (*lead, 17, 9)
+    flat_a, flat_b, flat_d = a.reshape(-1, 17, 32), b.reshape(-1, 9, 32), d.reshape(-1, 17, 9)
+    for i in range(flat_a.shape[0]):
+        assert np.array_equal(flat_d[i].numpy(), _ref_distance(flat_a[i].numpy(), flat_b[i].numpy()))
+
+
+def test_hamming_distance_empty_sets():
+    gen = torch.Generator().manual_seed(3)
+    assert hamming_distance(_rand((0, 32), gen), _rand((4, 32), gen)).shape == (0, 4)
+    assert hamming_distance(_rand((3, 32), gen), _rand((0, 32), gen)).shape == (3, 0)
+
+
+def test_packed_distance_and_packing():
+    gen = torch.Generator().manual_seed(4)
+    a, b = _rand((50, 32), gen), _rand((50, 32), gen)
+    wa, wb = pack_descriptors(a), pack_descriptors(b)
+    assert wa.shape == (50, 4) and wa.dtype == torch.int64
+    ref = np.unpackbits(a.numpy() ^ b.numpy(), axis=-1).sum(-1)
+    assert np.array_equal(hamming_distance_packed(wa, wb).numpy(), ref)
+
+
+def _bf_nearest(a: np.ndarray, b: np.ndarray):
+    m = cv2.BFMatcher(cv2.NORM_HAMMING).match(a, b)
+    idx = np.array([x.trainIdx for x in m])
+    dist = np.array([x.distance for x in m])
+    qidx = np.array([x.queryIdx for x in m])
+    order = np.argsort(qidx)
+    return idx[order], dist[order]
+
+
+@pytest.mark.parametrize("backend", ["torch", "opencv"])
+@pytest.mark.parametrize("kernel", ["swar", "matmul"])
+def test_nearest_neighbour_equals_opencv_bfmatcher(backend, kernel):
+    gen = torch.Generator().manual_seed(5)
+    a, b = _correlated(gen)
+    ref_idx, ref_dist = _bf_nearest(a.numpy(), b.numpy())
+    m = match_descriptors(a, b, max_distance=256, backend=backend, kernel=kernel)
+    assert m.pairs.shape == (a.shape[0], 2)
+    assert np.array_equal(m.pairs[:, 0].numpy(), np.arange(a.shape[0]))
+    assert np.array_equal(m.distances.numpy(), ref_dist.astype(np.int32))
+    # Where the nearest neighbour is unique, the index must agree too.
+    full = _ref_distance(a.numpy(), b.numpy())
+    unique = (full == full.min(1, keepdims=True)).sum(1) == 1
+    assert unique.sum() > 0.5 * a.shape[0]
+    assert np.array_equal(m.pairs[unique, 1].numpy(), ref_idx[unique])
+
+
+def test_nearest_neighbour_on_real_orb_descriptors(shared_data):
+    from torchslam.features import ORBConfig, extract_orb
+
+    names = sorted((shared_data / "tum_fr1_xyz" / "rgb").iterdir())[:2]
+    imgs = [cv2.imread(str(p))[..., ::-1].copy() for p in names]
+    rgb = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float() / 255.0
+    f1, f2 = extract_orb(rgb, ORBConfig(n_features=1000))
+    ref_idx, ref_dist = _bf_nearest(f1.descriptors.numpy(), f2.descriptors.numpy())
+    for backend in ("torch", "opencv"):
+        m = match_descriptors(f1.descriptors, f2.descriptors, max_distance=256, backend=backend)
+        assert np.array_equal(m.distances.numpy(), ref_dist.astype(np.int32))
+    # GC-SLAM default threshold keeps a large share between consecutive frames.
+    m = match_descriptors(f1.descriptors, f2.descriptors)
+    assert m.pairs.shape[0] > 0.4 * len(f1)
+    assert int(m.distances.max()) <= 50
+
+
+def _np_match(a, b, max_distance, mutual, ratio):
+    """Loop reference for the matching rules (first index on ties)."""
+    full = _ref_distance(a, b)
+    out = []
+    for i in range(a.shape[0]):
+        j = int(np.argmin(full[i]))
+        d = int(full[i, j])
+        if d > max_distance:
+            continue
+        if ratio is not None and b.shape[0] >= 2:
+            second = np.sort(full[i])[1]
+            if not d < ratio * second:
+                continue
+        if mutual and int(np.argmin(full[:, j])) != i:
+            continue
+        out.append((i, j, d))
+    return out
+
+
+@pytest.mark.parametrize("backend", ["torch", "opencv"])
+@pytest.mark.parametrize("mutual,ratio,max_distance", [(False, None, 50), (True, None, 60), (False, 0.8, 256), (True, 0.7, 40)])
+def test_match_rules_equal_loop_reference(backend, mutual, ratio, max_distance):
+    gen = torch.Generator().manual_seed(6)
+    a, b = _correlated(gen, 120, 150)
+    ref = _np_match(a.numpy(), b.numpy(), max_distance, mutual, ratio)
+    m = match_descriptors(a, b, max_distance=max_distance, mutual=mutual, ratio=ratio, backend=backend)
+    got = [(int(i), int(j), int(d)) for (i, j), d in zip(m.pairs.tolist(), m.distances.tolist())]
+    assert got == ref
+    assert len(ref) > 10  # the rules are exercised, not vacuous
+
+
+@pytest.mark.parametrize("kernel", ["swar", "lut", "matmul"])
+def test_batched_matching_with_padding_equals_per_pair(kernel):
+    gen = torch.Generator().manual_seed(7)
+    sets1, sets2 = [], []
+    for k1, k2 in [(40, 60), (0, 10), (25, 1), (60, 33), (10, 0)]:
+        a, b = _correlated(gen, max(k1, 1), max(k2, 1))
+        sets1.append(a[:k1])
+        sets2.append(b[:k2])
+    p1, v1 = pad_descriptors(sets1)
+    p2, v2 = pad_descriptors(sets2)
+    # Garbage in the padding must not matter.
+    p2 = torch.where(v2[..., None], p2, torch.zeros_like(p2))
+    for mutual, ratio in [(False, None), (True, 0.9)]:
+        res = match_descriptors_batched(p1, p2, v1, v2, max_distance=60, mutual=mutual, ratio=ratio, kernel=kernel)
+        assert res.index.shape == p1.shape[:2]
+        for b in range(len(sets1)):
+            ref = _np_match(sets1[b].numpy(), sets2[b].numpy(), 60, mutual, ratio) if len(sets2[b]) else []
+            k1 = len(sets1[b])
+            got = [(i, int(res.index[b, i]), int(res.distance[b, i])) for i in range(k1) if res.index[b, i] >= 0]
+            assert got == ref
+            assert (res.index[b, k1:] == -1).all() and (res.distance[b, k1:] == -1).all()
+            if len(sets2[b]) == 0:
+                assert (res.distance[b] == -1).all()
+
+
+def test_empty_inputs_give_empty_matches():
+    gen = torch.Generator().manual_seed(8)
+    for backend in ("torch", "opencv"):
+        m = match_descriptors(_rand((0, 32), gen), _rand((5, 32), gen), backend=backend)
+        assert m.pairs.shape == (0, 2) and m.distances.shape == (0,)
+        m = match_descriptors(_rand((5, 32), gen), _rand((0, 32), gen), backend=backend)
+        assert m.pairs.shape == (0, 2)
+
+
+def test_bad_inputs_raise():
+    gen = torch.Generator().manual_seed(9)
+    a = _rand((5, 32), gen)
+    with pytest.raises(ShapeError, match=r"d1: expected \(K1, 32\)"):
+        match_descriptors(a[:, :16], a)
+    with pytest.raises(DTypeError, match="d2: expected uint8"):
+        match_descriptors(a, a.int())
+    with pytest.raises(ConfigError, match="backend: 'gpu' is not one of"):
+        match_descriptors(a, a, backend="gpu")
+    with pytest.raises(ConfigError, match="kernel"):
+        hamming_distance(a, a, kernel="popcnt")
+    with pytest.raises(ConfigError, match="ratio"):
+        match_descriptors(a, a, ratio=1.5)
+    with pytest.raises(ConfigError, match="max_distance"):
+        match_descriptors(a, a, max_distance=-1)
+    with pytest.raises(ShapeError, match="d2: expected leading dimensions"):
+        hamming_distance(a[None].expand(2, 5, 32), a[None])
+    with pytest.raises(ShapeError, match="valid2"):
+        match_descriptors_batched(a[None], a[None], valid2=torch.ones(1, 4, dtype=torch.bool))
+    with pytest.raises(DTypeError, match="x: expected int64"):
+        popcount64(torch.zeros(3, dtype=torch.int32))
+    with pytest.raises(ShapeError, match="descriptors: expected at least one"):
+        pad_descriptors([])
+    assert HammingKernel("swar") is HammingKernel.SWAR
+
+
+@pytest.mark.cuda
+def test_cuda_kernels_equal_cpu():
+    gen = torch.Generator().manual_seed(10)
+    a, b = _correlated(gen, 500, 700)
+    ref = hamming_distance(a, b, "swar")
+    for kernel in ("swar", "lut", "matmul"):
+        assert torch.equal(hamming_distance(a.cuda(), b.cuda(), kernel).cpu(), ref)
+    m_gpu = match_descriptors(a.cuda(), b.cuda(), mutual=True)
+    m_cpu = match_descriptors(a, b, mutual=True, backend="torch")
+    assert torch.equal(m_gpu.pairs.cpu(), m_cpu.pairs) and torch.equal(m_gpu.distances.cpu(), m_cpu.distances)

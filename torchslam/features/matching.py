@@ -1,0 +1,453 @@
+"""Hamming distances between 256-bit binary descriptors and nearest-neighbour matching.
+
+Three torch kernels compute the full distance matrix, batched over pairs ``(B, K1, K2)``:
+
+- ``swar``: descriptors packed to four int64 words; XOR, then a SWAR popcount (bit-sliced sums
+  in 2-, 4- and 8-bit fields, a multiply that adds the bytes into the top byte).
+- ``lut``: XOR of the raw bytes and a 256-entry popcount table.
+- ``matmul``: bits as ±1 vectors, so ``a·b = 256 - 2 d`` and the whole matrix is one GEMM
+  (``bmm``). Every product and partial sum is a small integer, exact in float16/float32.
+
+Matching (``match_descriptors``) returns each query descriptor's nearest neighbour, optionally
+kept only when mutual and/or when it passes a ratio test, and always only within
+``max_distance``. GC-SLAM's defaults: nearest neighbour, Hamming threshold 50, no ratio test.
+On the CPU the ``auto`` backend uses OpenCV's brute-force Hamming search (``cv2.batchDistance``),
+which ``scripts/bench_matching.py`` measured faster than every torch kernel at 2000 x 2000
+descriptors; on other devices the torch path runs.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import ConfigError, DTypeError, ShapeError, check_shape
+
+__all__ = [
+    "HammingKernel",
+    "MatchBackend",
+    "Matches",
+    "BatchedMatches",
+    "popcount64",
+    "pack_descriptors",
+    "pad_descriptors",
+    "hamming_distance",
+    "hamming_distance_packed",
+    "match_descriptors",
+    "match_descriptors_batched",
+]
+
+_M1 = 0x5555555555555555
+_M2 = 0x3333333333333333
+_M4 = 0x0F0F0F0F0F0F0F0F
+_H01 = 0x0101010101010101
+_M8 = 0x00FF00FF00FF00FF
+_H0001 = 0x0001000100010001
+_BITS = 256
+# Larger than any Hamming distance between 256-bit strings: marks padded candidates.
+_FAR = 1 << 20
+# Elements of one (B, rows, K2) int64 block of the SWAR/LUT kernels: small enough to stay in cache
+# on a CPU, large enough that kernel launches do not dominate on a GPU.
+_BLOCK_CPU = 1 << 19
+_BLOCK_GPU = 1 << 25
+
+
+class HammingKernel(enum.Enum):
+    """How torch computes a Hamming distance matrix (see the module docstring)."""
+
+    AUTO = "auto"
+    SWAR = "swar"
+    LUT = "lut"
+    MATMUL = "matmul"
+
+
+class MatchBackend(enum.Enum):
+    """Who runs nearest-neighbour matching: ``auto`` is OpenCV on the CPU and torch elsewhere."""
+
+    AUTO = "auto"
+    TORCH = "torch"
+    OPENCV = "opencv"
+
+
+class Matches(NamedTuple):
+    """Matches of one descriptor pair, sorted by the first index.
+
+    Attributes:
+        pairs: (M, 2) int64 ``(index into d1, index into d2)``.
+        distances: (M,) int32 Hamming distances in bits.
+    """
+
+    pairs: Tensor
+    distances: Tensor
+
+
+class BatchedMatches(NamedTuple):
+    """Matches of B descriptor pairs, one entry per query descriptor.
+
+    Attributes:
+        index: (B, K1) int64 index into ``d2`` of the accepted match, -1 where there is none.
+        distance: (B, K1) int32 distance to the nearest valid ``d2`` descriptor (also where the
+            match was rejected), -1 for padded queries or when ``d2`` has no valid descriptor.
+    """
+
+    index: Tensor
+    distance: Tensor
+
+
+def _enum(value, cls, name: str):
+    if isinstance(value, cls):
+        return value
+    for member in cls:
+        if value == member.value:
+            return member
+    raise ConfigError(f"{name}: {value!r} is not one of {[m.value for m in cls]}")
+
+
+def _check_descriptors(d: Tensor, spec: str, name: str, dims: dict) -> None:
+    check_shape(d, spec, name, dims)
+    if d.dtype != torch.uint8:
+        raise DTypeError(f"{name}: expected uint8 descriptors, got {d.dtype}")
+
+
+def popcount64(x: Tensor) -> Tensor:
+    """Count the set bits of every int64 element (SWAR, no lookup table).
+
+    Args:
+        x: (...) int64 tensor; negative values count their two's-complement bits.
+
+    Returns:
+        (...) int64 bit counts in [0, 64].
+    """
+    if x.dtype != torch.int64:
+        raise DTypeError(f"x: expected int64, got {x.dtype}")
+    x = x - ((x >> 1) & _M1)  # 2-bit field sums; the mask clears the sign bits an arithmetic shift brings in
+    x = (x & _M2) + ((x >> 2) & _M2)  # 4-bit field sums
+    x = (x + (x >> 4)) & _M4  # byte sums
+    return (x * _H01) >> 56  # top byte = sum of all bytes (wrapping multiply)
+
+
+def pack_descriptors(descriptors: Tensor) -> Tensor:
+    """Reinterpret 32-byte descriptors as four int64 words (no copy when contiguous).
+
+    Args:
+        descriptors: (..., K, 32) uint8.
+
+    Returns:
+        (..., K, 4) int64 words holding the same 256 bits.
+    """
+    _check_descriptors(descriptors, "... K 32", "descriptors", {})
+    return descriptors.contiguous().view(torch.int64)
+
+
+def _signs(descriptors: Tensor, dtype: torch.dtype) -> Tensor:
+    # (..., K, 32) uint8 -> (..., K, 256) of +1 (bit set) / -1 (bit clear).
+    shifts = torch.arange(8, dtype=torch.uint8, device=descriptors.device)
+    bits = (descriptors.unsqueeze(-1) >> shifts) & 1
+    return bits.flatten(-2).to(dtype).mul_(2).sub_(1)
+
+
+def _popcount_block(a: Tensor, bt: Tensor) -> Tensor:
+    """SWAR distances of a block: a (B, R, 4) int64, bt (B, 4, K2) int64 -> (B, R, K2) int64.
+
+    Same arithmetic as :func:`popcount64`, but words are added while their field sums still fit
+    (two words per 4-bit field, four per byte), so the later folds run on fewer tensors.
+    """
+
+    def nibbles(x: Tensor) -> Tensor:
+        t = x >> 1
+        t &= _M1
+        x -= t
+        t = x >> 2
+        t &= _M2
+        x &= _M2
+        x += t
+        return x
+
+    x0 = nibbles(a[:, :, 0:1] ^ bt[:, 0:1, :])
+    x0 += nibbles(a[:, :, 1:2] ^ bt[:, 1:2, :])
+    x1 = nibbles(a[:, :, 2:3] ^ bt[:, 2:3, :])
+    x1 += nibbles(a[:, :, 3:4] ^ bt[:, 3:4, :])
+    for x in (x0, x1):
+        t = x >> 4
+        t &= _M4
+        x &= _M4
+        x += t  # byte sums <= 16
+    x0 += x1  # byte sums <= 32
+    # Fold bytes into 16-bit fields (<= 64), then one multiply adds the four fields into the top
+    # 16 bits. The total (<= 256) does not fit the top byte a 64-bit popcount would use.
+    t = x0 >> 8
+    t &= _M8
+    x0 &= _M8
+    x0 += t
+    x0 *= _H0001
+    x0 >>= 48
+    return x0
+
+
+def _lut(device: torch.device) -> Tensor:
+    v = torch.arange(256, device=device)
+    return ((v.unsqueeze(-1) >> torch.arange(8, device=device)) & 1).sum(-1).to(torch.int32)
+
+
+def _rows_per_block(b: int, k2: int, cols: int, device: torch.device) -> int:
+    budget = _BLOCK_GPU if device.type != "cpu" else _BLOCK_CPU
+    return max(1, budget // max(1, b * k2 * cols))
+
+
+def _distance_blocks(d1: Tensor, d2: Tensor, kernel: HammingKernel):
+    """Yield ``(row_start, (B, R, K2) int32 distances)`` blocks of the (B, K1, K2) matrix."""
+    b, k1, k2 = d1.shape[0], d1.shape[1], d2.shape[1]
+    dev = d1.device
+    if kernel is HammingKernel.AUTO:
+        kernel = HammingKernel.MATMUL
+    if kernel is HammingKernel.MATMUL:
+        dtype = torch.float32 if dev.type == "cpu" else torch.float16
+        s1, s2t = _signs(d1, dtype), _signs(d2, dtype).transpose(1, 2)
+        rows = max(1, (1 << 24) // max(1, b * k2))  # bound the float block to 64 MiB
+        for r0 in range(0, k1, rows):
+            dot = torch.bmm(s1[:, r0 : r0 + rows], s2t)  # (B, R, K2) = 256 - 2 d, exact
+            yield r0, ((_BITS - dot.float()) * 0.5).round_().to(torch.int32)
+        return
+    if kernel is HammingKernel.SWAR:
+        w1 = d1.contiguous().view(torch.int64)
+        w2t = d2.contiguous().view(torch.int64).transpose(1, 2).contiguous()  # (B, 4, K2)
+        rows = _rows_per_block(b, k2, 1, dev)
+        for r0 in range(0, k1, rows):
+            yield r0, _popcount_block(w1[:, r0 : r0 + rows], w2t).to(torch.int32)
+        return
+    lut = _lut(dev)
+    rows = _rows_per_block(b, k2, 32, dev)
+    for r0 in range(0, k1, rows):
+        x = d1[:, r0 : r0 + rows, None, :] ^ d2[:, None, :, :]  # (B, R, K2, 32) uint8
+        yield r0, lut[x.int()].sum(-1, dtype=torch.int32)
+
+
+def hamming_distance(d1: Tensor, d2: Tensor, kernel: HammingKernel | str = HammingKernel.AUTO) -> Tensor:
+    """Compute all Hamming distances between two descriptor sets.
+
+    Args:
+        d1: (..., K1, 32) uint8 descriptors.
+        d2: (..., K2, 32) uint8 descriptors with the same leading dimensions as ``d1``.
+        kernel: torch kernel; ``auto`` is ``matmul`` (fastest torch kernel on CPU and GPU).
+
+    Returns:
+        (..., K1, K2) int32 distances in bits, in [0, 256].
+    """
+    kernel = _enum(kernel, HammingKernel, "kernel")
+    _check_descriptors(d1, "... K1 32", "d1", {})
+    _check_descriptors(d2, "... K2 32", "d2", {})
+    if d1.shape[:-2] != d2.shape[:-2]:
+        raise ShapeError(f"d2: expected leading dimensions {tuple(d1.shape[:-2])} as d1, got {tuple(d2.shape)}")
+    if d1.device != d2.device:
+        raise ShapeError(f"d2: expected device {d1.device} as d1, got {d2.device}")
+    lead = d1.shape[:-2]
+    nb = int(np.prod(lead)) if lead else 1
+    a = d1.reshape(nb, d1.shape[-2], 32)
+    b = d2.reshape(nb, d2.shape[-2], 32)
+    out = torch.empty(a.shape[0], a.shape[1], b.shape[1], dtype=torch.int32, device=d1.device)
+    if out.numel():
+        for r0, block in _distance_blocks(a, b, kernel):
+            out[:, r0 : r0 + block.shape[1]] = block
+    return out.reshape(*lead, a.shape[1], b.shape[1])
+
+
+def hamming_distance_packed(w1: Tensor, w2: Tensor) -> Tensor:
+    """Hamming distances between corresponding packed descriptors (element-wise, not all pairs).
+
+    Args:
+        w1: (..., 4) int64 packed descriptors (:func:`pack_descriptors`).
+        w2: (..., 4) int64, broadcastable against ``w1``.
+
+    Returns:
+        (...) int64 distances in bits.
+    """
+    check_shape(w1, "... 4", "w1")
+    check_shape(w2, "... 4", "w2")
+    return popcount64(w1 ^ w2).sum(-1)
+
+
+def pad_descriptors(descriptors: list[Tensor]) -> tuple[Tensor, Tensor]:
+    """Stack ragged descriptor sets into one padded batch.
+
+    Args:
+        descriptors: B tensors of shape (K_b, 32) uint8, on one device.
+
+    Returns:
+        padded: (B, K_max, 32) uint8, zeros past each set's end.
+        valid: (B, K_max) bool, True for real descriptors.
+    """
+    if len(descriptors) == 0:
+        raise ShapeError("descriptors: expected at least one (K, 32) tensor, got an empty list")
+    for i, d in enumerate(descriptors):
+        _check_descriptors(d, "K 32", f"descriptors[{i}]", {})
+    dev = descriptors[0].device
+    counts = torch.tensor([d.shape[0] for d in descriptors], device=dev)
+    k_max = int(counts.max())
+    padded = torch.zeros(len(descriptors), k_max, 32, dtype=torch.uint8, device=dev)
+    valid = torch.arange(k_max, device=dev) < counts[:, None]
+    if k_max:
+        padded[valid] = torch.cat(descriptors, 0)
+    return padded, valid
+
+
+def _match_torch(d1, d2, valid1, valid2, max_distance, mutual, ratio, kernel) -> BatchedMatches:
+    b, k1, k2 = d1.shape[0], d1.shape[1], d2.shape[1]
+    dev = d1.device
+    best = torch.full((b, k1), _FAR, dtype=torch.int32, device=dev)
+    best_idx = torch.zeros((b, k1), dtype=torch.int64, device=dev)
+    second = torch.full((b, k1), _FAR, dtype=torch.int32, device=dev)
+    col_best = torch.full((b, k2), _FAR, dtype=torch.int32, device=dev)
+    col_idx = torch.full((b, k2), -1, dtype=torch.int64, device=dev)
+    if k1 and k2:
+        pad_cols = ~valid2[:, None, :]
+        for r0, dist in _distance_blocks(d1, d2, kernel):
+            r1 = r0 + dist.shape[1]
+            dist.masked_fill_(pad_cols, _FAR)
+            dist.masked_fill_(~valid1[:, r0:r1, None], _FAR)
+            best[:, r0:r1], best_idx[:, r0:r1] = dist.min(-1)  # first index on ties
+            if ratio is not None and k2 >= 2:
+                second[:, r0:r1] = dist.topk(2, dim=-1, largest=False).values[..., 1]
+            if mutual:
+                cb, ci = dist.min(1)  # (B, K2) best row of this block, first on ties
+                better = cb < col_best  # strict: an earlier block keeps a tie
+                col_best = torch.where(better, cb, col_best)
+                col_idx = torch.where(better, ci + r0, col_idx)
+    has = valid1 & (best < _FAR)
+    keep = has & (best <= max_distance)
+    if ratio is not None:
+        keep &= (best.double() < ratio * second.double()) | (second >= _FAR)
+    if mutual and k2:
+        rows = torch.arange(k1, device=dev).expand(b, k1)
+        keep &= torch.gather(col_idx, 1, best_idx) == rows
+    index = torch.where(keep, best_idx, torch.full_like(best_idx, -1))
+    distance = torch.where(has, best, torch.full_like(best, -1))
+    return BatchedMatches(index, distance)
+
+
+def _match_opencv(d1: Tensor, d2: Tensor, max_distance, mutual, ratio) -> BatchedMatches:
+    a = np.ascontiguousarray(d1.cpu().numpy())
+    b = np.ascontiguousarray(d2.cpu().numpy())
+    k1, k2 = a.shape[0], b.shape[0]
+    if k1 == 0 or k2 == 0:
+        empty = torch.full((1, k1), -1, dtype=torch.int64)
+        return BatchedMatches(empty, empty.to(torch.int32))
+    want = 2 if (ratio is not None and k2 >= 2) else 1
+    dist, idx = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=want)
+    best, best_idx = dist[:, 0], idx[:, 0].astype(np.int64)
+    keep = best <= max_distance
+    if want == 2:
+        keep &= best.astype(np.float64) < ratio * dist[:, 1].astype(np.float64)
+    if mutual:
+        _, ridx = cv2.batchDistance(b, a, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
+        keep &= ridx[best_idx, 0] == np.arange(k1)
+    index = np.where(keep, best_idx, -1)
+    return BatchedMatches(torch.from_numpy(index)[None], torch.from_numpy(best.astype(np.int32))[None])
+
+
+def _check_match_args(max_distance, ratio) -> None:
+    if max_distance < 0:
+        raise ConfigError(f"max_distance: must be >= 0, got {max_distance}")
+    if ratio is not None and not 0.0 < ratio <= 1.0:
+        raise ConfigError(f"ratio: must be in (0, 1] or None, got {ratio}")
+
+
+def match_descriptors_batched(
+    d1: Tensor,
+    d2: Tensor,
+    valid1: Tensor | None = None,
+    valid2: Tensor | None = None,
+    max_distance: int = 50,
+    mutual: bool = False,
+    ratio: float | None = None,
+    kernel: HammingKernel | str = HammingKernel.AUTO,
+) -> BatchedMatches:
+    """Match B descriptor pairs at once in torch (the path that runs on accelerators).
+
+    For every valid query ``d1[b, i]`` the nearest valid ``d2[b, j]`` (the first on ties) is
+    accepted when its distance is at most ``max_distance``; with ``mutual`` also only when
+    ``d1[b, i]`` is in turn the nearest of ``d2[b, j]``; with ``ratio`` also only when
+    ``best < ratio * second_best`` (a single candidate always passes).
+
+    Args:
+        d1: (B, K1, 32) uint8 query descriptors (padded, see :func:`pad_descriptors`).
+        d2: (B, K2, 32) uint8 reference descriptors.
+        valid1: (B, K1) bool, True for real descriptors; None means all.
+        valid2: (B, K2) bool; None means all.
+        max_distance: largest accepted Hamming distance in bits (GC-SLAM: 50).
+        mutual: require mutual nearest neighbours.
+        ratio: Lowe ratio threshold in (0, 1], or None for no ratio test (GC-SLAM).
+        kernel: torch Hamming kernel.
+
+    Returns:
+        ``BatchedMatches(index (B, K1), distance (B, K1))``.
+    """
+    dims: dict[str, int] = {}
+    _check_descriptors(d1, "B K1 32", "d1", dims)
+    _check_descriptors(d2, "B K2 32", "d2", dims)
+    if d1.device != d2.device:
+        raise ShapeError(f"d2: expected device {d1.device} as d1, got {d2.device}")
+    _check_match_args(max_distance, ratio)
+    kernel = _enum(kernel, HammingKernel, "kernel")
+    if valid1 is None:
+        valid1 = torch.ones(d1.shape[:2], dtype=torch.bool, device=d1.device)
+    if valid2 is None:
+        valid2 = torch.ones(d2.shape[:2], dtype=torch.bool, device=d2.device)
+    check_shape(valid1, "B K1", "valid1", dims)
+    check_shape(valid2, "B K2", "valid2", dims)
+    return _match_torch(d1, d2, valid1.bool(), valid2.bool(), max_distance, mutual, ratio, kernel)
+
+
+def match_descriptors(
+    d1: Tensor,
+    d2: Tensor,
+    max_distance: int = 50,
+    mutual: bool = False,
+    ratio: float | None = None,
+    backend: MatchBackend | str = MatchBackend.AUTO,
+    kernel: HammingKernel | str = HammingKernel.AUTO,
+) -> Matches:
+    """Match two descriptor sets by nearest Hamming neighbour.
+
+    Semantics as :func:`match_descriptors_batched`. GC-SLAM's defaults are the nearest neighbour
+    within 50 bits, neither mutual nor ratio-tested. Both backends give the same nearest
+    distances and, where the nearest neighbour is unique, the same indices (both take the first
+    index on ties).
+
+    Args:
+        d1: (K1, 32) uint8 query descriptors.
+        d2: (K2, 32) uint8 reference descriptors, on the same device.
+        max_distance: largest accepted Hamming distance in bits.
+        mutual: require mutual nearest neighbours.
+        ratio: Lowe ratio threshold in (0, 1], or None.
+        backend: ``auto`` (OpenCV on CPU, torch elsewhere), ``torch`` or ``opencv``.
+        kernel: torch Hamming kernel when torch runs.
+
+    Returns:
+        ``Matches(pairs (M, 2) int64, distances (M,) int32)`` on ``d1.device``, sorted by the
+        index into ``d1``.
+    """
+    dims: dict[str, int] = {}
+    _check_descriptors(d1, "K1 32", "d1", dims)
+    _check_descriptors(d2, "K2 32", "d2", dims)
+    if d1.device != d2.device:
+        raise ShapeError(f"d2: expected device {d1.device} as d1, got {d2.device}")
+    _check_match_args(max_distance, ratio)
+    backend = _enum(backend, MatchBackend, "backend")
+    kernel = _enum(kernel, HammingKernel, "kernel")
+    if backend is MatchBackend.AUTO:
+        backend = MatchBackend.OPENCV if d1.device.type == "cpu" else MatchBackend.TORCH
+    if backend is MatchBackend.OPENCV:
+        res = _match_opencv(d1, d2, max_distance, mutual, ratio)
+    else:
+        ones1 = torch.ones(1, d1.shape[0], dtype=torch.bool, device=d1.device)
+        ones2 = torch.ones(1, d2.shape[0], dtype=torch.bool, device=d1.device)
+        res = _match_torch(d1[None], d2[None], ones1, ones2, max_distance, mutual, ratio, kernel)
+    index, distance = res.index[0].to(d1.device), res.distance[0].to(d1.device)
+    rows = torch.nonzero(index >= 0).squeeze(-1)
+    pairs = torch.stack([rows, index[rows]], dim=-1)
+    return Matches(pairs, distance[rows])
