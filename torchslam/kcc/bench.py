@@ -92,7 +92,7 @@ def benchmark_frontend(
         points, grey, valid = rgbd_to_points(rgb, depth, intrinsics)
         r_k = choose_resolution(points, valid, size, cfg.coverage, cfg.sample_step)
         kf = orthographic_project(points, grey, valid, None, r_k, size)
-        filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm), cfg.sigma, cfg.lam)
+        filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes), cfg.sigma, cfg.lam)
         _sync(device)
         train_ms = (time.perf_counter() - t0) * 1e3
 
@@ -103,7 +103,7 @@ def benchmark_frontend(
             ortho = project(rot, r_k)
             _sync(device)
             t1 = time.perf_counter()
-            x = kcc_features(ortho.grey, ortho.depth, ortho.valid, cfg.channel_norm)
+            x = kcc_features(ortho.grey, ortho.depth, ortho.valid, cfg.channel_norm, cfg.fill_holes)
             pred = kcc_predict(
                 x, filt, cfg.sigma, r_k, cfg.subpixel, cfg.subpixel_smoothing, cfg.subpixel_iterations, cfg.psr_window
             )

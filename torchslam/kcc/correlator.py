@@ -15,12 +15,15 @@ Energies by Parseval. ``rfft2`` keeps only the non-negative frequencies of the l
 columns that stand for a conjugate pair (all except DC and, for even ``W``, Nyquist) must count
 twice: ``‖x‖² = (1/HW) Σ_k w_k |x̂_k|²`` with ``w = 1`` for those two columns and ``2`` otherwise.
 torchslam uses this weighted sum, which equals the spatial ``Σ x²`` to round-off (tested). A plain
-sum over the half spectrum instead under-counts each energy by a constant ``Δ ≈ ‖x‖²/2``. Because
-the energies enter the kernel only as ``exp(-(‖x‖² + ‖z‖²)/(σ² N))``, that error multiplies every
-kernel value by a constant ``exp((Δ_x + Δ_z)/(σ² N))``; in ``ĥ* = ĝ/(κ̂_z(z) + λ)`` this is the same
-as dividing ``λ`` by the factor ``exp(2 Δ_z/(σ² N))`` (and rescaling ``g``). For grey images of
-mean square 0.25 and ``σ = 0.2`` that is ``λ / e^6.25 ≈ λ / 500``: the regulariser all but
-vanishes. The test suite checks this equivalence explicitly.
+sum over the half spectrum instead under-counts each energy by a constant ``Δ``: half the energy
+outside the ``k_x = 0`` (and Nyquist) columns, about ``N v / 2`` for channels of variance ``v``
+along the rows. Because the energies enter the kernel only as ``exp(-(‖x‖² + ‖z‖²)/(σ² N))``
+(with no clamp active), that error multiplies every kernel value by ``exp((Δ_x + Δ_z)/(σ² N))``;
+in ``ĥ* = ĝ/(κ̂_z(z) + λ)`` this is the same as dividing ``λ`` by ``a = exp(2 Δ_z/(σ² N))`` and
+scaling ``g`` by a constant. With ``σ = 0.2``, ``a ≈ 5`` for raw grey of standard deviation 0.25
+and ``a ≈ e^25`` for standardised channels: the regulariser silently vanishes. The test suite
+checks this equivalence explicitly. (With a clamp of the argument at 0, as is usual, the
+under-counted energies make it negative near the peak and the kernel saturates at 1 instead.)
 
 Training and prediction (Eq. (11), (17)): the desired output ``g`` is a delta at ``[0, 0]``
 (``ĝ = 1``), ``ĥ* = 1 / (κ̂_z(z) + λ)`` and ``g(x) = F⁻¹(κ̂_z(x) ⊙ ĥ*)``.
@@ -41,6 +44,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
@@ -71,7 +75,7 @@ class Subpixel(str, enum.Enum):
 
     NONE: integer peak only (the paper).
     QUADRATIC: vertex of a least-squares 2-D quadratic on the 3x3 neighbourhood (with
-        wrap-around). Cheap, but biased by up to ~0.15 px on the sharp, sinc-like KCC peaks.
+        wrap-around). Cheap, but biased by up to ~0.17 px on the sharp, sinc-like KCC peaks.
     FOURIER: Newton iterations on the trigonometric interpolant of ``g`` smoothed by a Gaussian
         of ``smoothing`` pixels, evaluated exactly from the spectrum (O(HW) per step). Smoothing
         with a symmetric kernel does not move the maximum of a symmetric peak but suppresses the
@@ -130,6 +134,8 @@ class KCCConfig:
         subpixel_smoothing: Gaussian smoothing in pixels for ``Subpixel.FOURIER``.
         subpixel_iterations: Newton iterations for ``Subpixel.FOURIER``.
         channel_norm: how grey and depth become KCC channels.
+        fill_holes: odd window of the hole filling of the KCC input (1 = off, the paper); see
+            ``kcc_features``.
         depth_median_center: select well-matched depths around their median instead of around
             0 (beyond the paper; see ``depth_translation``).
         soft_argmax: use the differentiable soft arg-max instead of the hard peak for the shift.
@@ -152,6 +158,7 @@ class KCCConfig:
     subpixel_smoothing: float = 1.0
     subpixel_iterations: int = 5
     channel_norm: ChannelNorm = ChannelNorm.STANDARDIZE
+    fill_holes: int = 3
     depth_median_center: bool = False
     soft_argmax: bool = False
     temperature: float = 0.02
@@ -171,8 +178,10 @@ class KCCConfig:
                 raise ConfigError(f"{key}: expected a positive integer, got {value!r}")
         if not (0.0 < self.coverage <= 1.0):
             raise ConfigError(f"coverage: expected a fraction in (0, 1], got {self.coverage!r}")
-        if not (isinstance(self.psr_window, int) and self.psr_window >= 1 and self.psr_window % 2 == 1):
-            raise ConfigError(f"psr_window: expected a positive odd integer, got {self.psr_window!r}")
+        for key in ("psr_window", "fill_holes"):
+            value = getattr(self, key)
+            if not (isinstance(value, int) and value >= 1 and value % 2 == 1):
+                raise ConfigError(f"{key}: expected a positive odd integer, got {value!r}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,17 +245,27 @@ def kcc_features(
     depth: Tensor,
     valid: Tensor,
     mode: ChannelNorm | str = ChannelNorm.STANDARDIZE,
+    fill_holes: int = 3,
 ) -> Tensor:
     """Stack orthographic grey and depth images into the two KCC channels.
+
+    Hole filling (beyond the paper): an orthographic image of a 640x480 cloud at 360x480 has
+    holes in about half its pixels, in a moiré pattern of the camera and orthographic grids.
+    That pattern does not move with the content under sub-pixel shifts, and limited planted
+    sub-pixel translations through ``orthographic_project`` to ~0.6 px. Filling each hole with
+    the mean of the valid pixels in a ``fill_holes x fill_holes`` window (normalised box filter,
+    no wrap-around) brings them under 0.1 px. Pixels with no valid neighbour stay holes. Only
+    the correlator's input is filled; depth translation and fusion use the rendered pixels.
 
     Args:
         grey: (B, H, W) grey values in [0, 1].
         depth: (B, H, W) depth in metres.
         valid: (B, H, W) bool validity.
         mode: ``ChannelNorm.RAW`` (the paper) or ``ChannelNorm.STANDARDIZE`` (see the enum).
+        fill_holes: odd window side of the hole filling; 1 turns it off (the paper).
 
     Returns:
-        (B, 2, H, W) channels ``(grey, depth)``, 0 at invalid pixels.
+        (B, 2, H, W) channels ``(grey, depth)``, 0 at pixels that remain invalid.
     """
     dims: dict[str, int] = {}
     check_shape(grey, "B H W", "grey", dims)
@@ -257,8 +276,18 @@ def kcc_features(
     if valid.dtype != torch.bool:
         raise DTypeError(f"valid: expected a bool mask, got {valid.dtype}")
     mode = _enum(ChannelNorm, mode, "mode")
+    if not (isinstance(fill_holes, int) and fill_holes >= 1 and fill_holes % 2 == 1):
+        raise ConfigError(f"fill_holes: expected a positive odd integer, got {fill_holes!r}")
     x = torch.stack([grey, depth.to(grey.dtype)], dim=1)  # (B, 2, H, W)
     m = valid[:, None].to(x.dtype)
+    if fill_holes > 1:
+        k = fill_holes
+        # Box means of x*m and of m share the k*k divisor, so their ratio is the mean over valid pixels.
+        num = F.avg_pool2d(x * m, k, stride=1, padding=k // 2)
+        den = F.avg_pool2d(m, k, stride=1, padding=k // 2)
+        has = den > 0
+        x = torch.where(valid[:, None], x, num / torch.where(has, den, torch.ones_like(den)))
+        m = (valid[:, None] | has).to(x.dtype)
     if mode is ChannelNorm.RAW:
         return x * m
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)

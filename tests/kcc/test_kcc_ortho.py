@@ -1,0 +1,224 @@
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchslam.errors import DTypeError, ShapeError
+from torchslam.geometry import so3_exp
+from torchslam.kcc import (
+    KCCConfig,
+    choose_resolution,
+    depth_translation,
+    grey_from_rgb,
+    kcc_features,
+    kcc_predict,
+    kcc_train,
+    orthographic_project,
+    rgbd_to_points,
+)
+
+
+def _gen(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+def brute_zbuffer(points, grey, valid, R, r, center, H, W):
+    """Per-point loop: nearest z wins, ties to the lower index. NumPy float64 oracle."""
+    B, N, _ = points.shape
+    depth = np.zeros((B, H, W))
+    out_grey = np.zeros((B, H, W))
+    best = np.full((B, H, W), -1)
+    for b in range(B):
+        p = points[b] @ R[b].T
+        for n in range(N):
+            if not valid[b, n]:
+                continue
+            u = (p[n, 0] - center[b, 0]) / r[b] + W / 2
+            v = (p[n, 1] - center[b, 1]) / r[b] + H / 2
+            if not (0 <= u < W and 0 <= v < H):
+                continue
+            col, row = int(math.floor(u)), int(math.floor(v))
+            if best[b, row, col] < 0 or p[n, 2] < depth[b, row, col]:
+                best[b, row, col] = n
+                depth[b, row, col] = p[n, 2]
+                out_grey[b, row, col] = grey[b, n]
+    return out_grey, depth, best >= 0
+
+
+def test_zbuffer_planted_nearest_wins_ties_to_lowest_index():
+    # r = 1 m/px, 4 x 5 image: pixel (col, row) = (floor(x + 2.5), floor(y + 2)).
+    pts = torch.tensor(
+        [
+            [-1.2, 0.3, 3.0],  # pixel (1, 2), far
+            [-1.1, 0.4, 1.5],  # pixel (1, 2), nearest: wins
+            [-1.3, 0.2, 2.0],  # pixel (1, 2)
+            [-1.2, 0.3, 0.5],  # pixel (1, 2), even nearer but invalid
+            [1.6, -1.9, 2.0],  # pixel (4, 0), tie ...
+            [1.7, -1.8, 2.0],  # ... with this one: the lower index wins
+            [10.0, 0.0, 1.0],  # outside the image
+            [2.5, 0.0, 1.0],  # x = W/2 exactly: outside (half-open pixel range)
+            [-2.5, -2.0, 1.0],  # the corner (0, 0): inside
+        ],
+        dtype=torch.float64,
+    )[None]
+    grey = torch.tensor([[0.1, 0.7, 0.3, 0.9, 0.2, 0.8, 0.5, 0.5, 0.4]], dtype=torch.float64)
+    valid = torch.ones(1, 9, dtype=torch.bool)
+    valid[0, 3] = False
+    out = orthographic_project(pts, grey, valid, None, torch.ones(1, dtype=torch.float64), size=(4, 5))
+    assert out.valid.sum() == 3
+    assert out.valid[0, 2, 1] and out.grey[0, 2, 1] == 0.7 and out.depth[0, 2, 1] == 1.5
+    assert out.valid[0, 0, 4] and out.grey[0, 0, 4] == 0.2
+    assert out.valid[0, 0, 0] and out.grey[0, 0, 0] == 0.4
+    assert (out.grey[~out.valid] == 0).all() and (out.depth[~out.valid] == 0).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_zbuffer_equals_per_point_loop_with_rotation_and_center(dtype):
+    gen = _gen(1)
+    B, N, H, W = 3, 400, 6, 7
+    pts = torch.randn(B, N, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64)
+    pts[..., 2] += 2.0
+    pts = (pts * 64).round() / 64  # dyadic values: float32 and float64 agree on every pixel and tie
+    grey = torch.rand(B, N, generator=gen, dtype=torch.float64)
+    valid = torch.rand(B, N, generator=gen) > 0.2
+    R = so3_exp(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, math.pi / 2], [0.0, 0.0, math.pi]], dtype=torch.float64))
+    R = R.round()  # exact quarter turns
+    r = torch.tensor([0.125, 0.25, 0.0625], dtype=torch.float64)
+    center = torch.tensor([[0.0, 0.0], [0.25, -0.125], [-0.5, 0.0]], dtype=torch.float64)
+    ref_grey, ref_depth, ref_valid = brute_zbuffer(pts.numpy(), grey.numpy(), valid.numpy(), R.numpy(), r.numpy(), center.numpy(), H, W)
+    out = orthographic_project(pts.to(dtype), grey.to(dtype), valid, R.to(dtype), r.to(dtype), (H, W), center.to(dtype))
+    assert out.grey.dtype == dtype and out.valid.shape == (B, H, W)
+    assert ref_valid.sum() > 40 and (~ref_valid).sum() > 5  # collisions and holes both occur
+    assert np.array_equal(out.valid.numpy(), ref_valid)
+    np.testing.assert_allclose(out.grey.double().numpy(), ref_grey, atol=1e-6)
+    np.testing.assert_allclose(out.depth.double().numpy(), ref_depth, atol=1e-6)
+    # Batched equals per item.
+    for b in range(B):
+        one = orthographic_project(
+            pts[b : b + 1].to(dtype), grey[b : b + 1].to(dtype), valid[b : b + 1], R[b : b + 1].to(dtype),
+            r[b : b + 1].to(dtype), (H, W), center[b : b + 1].to(dtype),
+        )
+        assert torch.equal(one.valid[0], out.valid[b])
+        assert torch.equal(one.grey[0], out.grey[b]) and torch.equal(one.depth[0], out.depth[b])
+
+
+def test_projection_is_differentiable_in_grey_and_depth_of_the_winners():
+    gen = _gen(2)
+    pts = torch.rand(1, 300, 3, generator=gen, dtype=torch.float64) * 2 - 1
+    pts[..., 2] += 3.0
+    pts.requires_grad_()
+    grey = torch.rand(1, 300, generator=gen, dtype=torch.float64, requires_grad=True)
+    valid = torch.ones(1, 300, dtype=torch.bool)
+    out = orthographic_project(pts, grey, valid, None, torch.tensor([0.25], dtype=torch.float64), (8, 8))
+    (out.grey.sum() + 2 * out.depth.sum()).backward()
+    _, _, ref_valid = brute_zbuffer(pts.detach().numpy(), grey.detach().numpy(), valid.numpy(), np.eye(3)[None], [0.25], np.zeros((1, 2)), 8, 8)
+    winners = grey.grad[0] > 0
+    assert winners.sum() == ref_valid.sum() == out.valid.sum()
+    assert set(grey.grad[0].unique().tolist()) <= {0.0, 1.0}
+    assert torch.equal(pts.grad[0, :, 2] == 2.0, winners) and (pts.grad[0, :, :2] == 0).all()
+
+
+def test_choose_resolution_is_the_coverage_order_statistic(tum_rgbd):
+    rgb, depth, intr = tum_rgbd
+    pts, grey, valid = rgbd_to_points(rgb, depth, intr)
+    pts = torch.cat([pts, pts])
+    valid = torch.cat([valid, torch.zeros_like(valid)])  # second item: no valid point at all
+    grey = torch.cat([grey, grey])
+    H, W = 360, 480
+    r = choose_resolution(pts, valid, (H, W), coverage=0.8, sample_step=25)
+    assert math.isnan(r[1].item())
+    # NumPy oracle on the sampled points.
+    s = pts[0, ::25].double().numpy()
+    ok = valid[0, ::25].numpy()
+    need = np.maximum(np.abs(s[ok, 0]) / (W / 2), np.abs(s[ok, 1]) / (H / 2))
+    k = math.ceil(0.8 * need.size) - 1
+    assert r[0].item() == pytest.approx(np.sort(need)[k] * (1 + 1e-6), rel=1e-6)
+    # At least 80 % of the sampled points, and about 80 % of all points, render inside.
+    inside = np.mean(need <= r[0].item())
+    assert 0.8 <= inside <= 0.8 + 2.0 / need.size
+    p = pts[0, valid[0]].double()
+    frac_all = ((p[:, 0].abs() < r[0] * W / 2) & (p[:, 1].abs() < r[0] * H / 2)).double().mean()
+    assert abs(frac_all.item() - 0.8) < 0.01
+    # A larger image at the same coverage needs a finer resolution, an offset centre a coarser one.
+    r_big = choose_resolution(pts[:1], valid[:1], (720, 960))
+    assert r_big[0] == pytest.approx(r[0].item() / 2, rel=1e-5)
+    r_off = choose_resolution(pts[:1], valid[:1], (H, W), center=torch.tensor([[0.3, 0.0]]))
+    assert r_off[0] > r[0]
+
+
+def test_planted_translation_and_rotation_recovered_through_orthographic_images(tum_rgbd):
+    """Sign convention end to end: a camera displaced by d from the keyframe sees content moved by -d."""
+    rgb, depth, intr = tum_rgbd
+    cfg = KCCConfig()
+    size = (cfg.ortho_height, cfg.ortho_width)
+    pts_k, grey, valid = rgbd_to_points(rgb.double(), depth.double(), intr.double())
+    r = choose_resolution(pts_k, valid, size)
+    kf = orthographic_project(pts_k, grey, valid, None, r, size)
+    # Frame cameras displaced by d and rotated by R_ki (attitude known): p_i = R_ki^T (p_k - d).
+    d = torch.tensor(
+        [[7 * r.item(), -4 * r.item(), 0.0], [0.0213, -0.0161, 0.0], [-0.0137, 0.0242, 0.031], [0.0311, 0.0087, -0.042]],
+        dtype=torch.float64,
+    )
+    R = so3_exp(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, -0.03, 0.02], [-0.04, 0.06, -0.05]], dtype=torch.float64))
+    B = d.shape[0]
+    pts_i = torch.einsum("bji,bnj->bni", R, pts_k - d[:, None, :])  # R^T (p - d)
+    rk = r.expand(B)
+    fr = orthographic_project(pts_i.float(), grey.expand(B, -1).float(), valid.expand(B, -1), R.float(), rk.float(), size)
+    kfeat = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes).float()
+    filt = kcc_train(kfeat.expand(B, -1, -1, -1), cfg.sigma, cfg.lam)
+    pred = kcc_predict(kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes), filt, cfg.sigma, rk.float())
+    err_px = (pred.t_xy.double() + d[:, :2]).abs() / r
+    assert err_px.max() < 0.2, err_px  # within r_k / 5
+    assert torch.equal(pred.index[0], torch.tensor([-7, 4]))
+    assert (pred.psr > cfg.T_M).all()
+    kf32 = orthographic_project(pts_k.float().expand(B, -1, -1), grey.float().expand(B, -1), valid.expand(B, -1), None, rk.float(), size)
+    dz = depth_translation(fr, kf32, pred.index, cfg.T_c, cfg.T_d)
+    assert dz.ok.all()
+    torch.testing.assert_close(dz.t_z.double(), -d[:, 2], atol=1.5e-3, rtol=0)
+
+
+def test_grey_from_rgb_matches_opencv_and_points_follow_backprojection(tum_rgbd):
+    rgb, depth, intr = tum_rgbd
+    grey = grey_from_rgb(rgb)
+    ref = cv2.cvtColor(rgb[0].permute(1, 2, 0).numpy(), cv2.COLOR_RGB2GRAY)
+    np.testing.assert_allclose(grey[0].numpy(), ref.reshape(-1), atol=1e-6)
+    pts, g, valid = rgbd_to_points(rgb, depth, intr)
+    assert pts.shape == (1, 480 * 640, 3) and torch.equal(g, grey)
+    assert torch.equal(valid[0], (depth[0, 0] > 0).reshape(-1))
+
+
+def test_nonpositive_or_nan_resolution_gives_an_empty_image():
+    pts = torch.rand(3, 50, 3, generator=_gen(3)) - 0.5
+    out = orthographic_project(pts, torch.rand(3, 50), torch.ones(3, 50, dtype=torch.bool), None, torch.tensor([0.0, -0.1, math.nan]), (4, 4))
+    assert not out.valid.any() and torch.isfinite(out.grey).all() and torch.isfinite(out.depth).all()
+
+
+def test_bad_inputs_raise():
+    pts = torch.rand(2, 10, 3)
+    grey = torch.rand(2, 10)
+    valid = torch.ones(2, 10, dtype=torch.bool)
+    r = torch.ones(2)
+    with pytest.raises(ShapeError, match=r"points: expected \(B, N, 3\), got \(2, 10, 2\)"):
+        orthographic_project(torch.rand(2, 10, 2), grey, valid, None, r)
+    with pytest.raises(ShapeError, match="grey"):
+        orthographic_project(pts, torch.rand(2, 11), valid, None, r)
+    with pytest.raises(DTypeError, match="valid"):
+        orthographic_project(pts, grey, valid.float(), None, r)
+    with pytest.raises(ShapeError, match="rotation"):
+        orthographic_project(pts, grey, valid, torch.eye(3), r)
+    with pytest.raises(ShapeError, match="resolution"):
+        orthographic_project(pts, grey, valid, None, torch.ones(3))
+    with pytest.raises(ShapeError, match="center"):
+        orthographic_project(pts, grey, valid, None, r, center=torch.zeros(2, 3))
+    with pytest.raises(ShapeError, match="size"):
+        orthographic_project(pts, grey, valid, None, r, size=(0, 4))
+    with pytest.raises(ShapeError, match="coverage"):
+        choose_resolution(pts, valid, coverage=1.5)
+    with pytest.raises(ShapeError, match="sample_step"):
+        choose_resolution(pts, valid, sample_step=0)
+    with pytest.raises(DTypeError, match="points"):
+        choose_resolution(pts.long(), valid)
+    with pytest.raises(ShapeError, match="rgb"):
+        grey_from_rgb(torch.rand(1, 4, 8, 8))
