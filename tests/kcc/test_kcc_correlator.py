@@ -385,9 +385,9 @@ def test_features_standardize_valid_pixels_and_zero_holes():
     grey = torch.rand(2, 6, 7, generator=gen, dtype=torch.float64)
     depth = 2.0 + torch.rand(2, 6, 7, generator=gen, dtype=torch.float64)
     valid = torch.rand(2, 6, 7, generator=gen) > 0.3
-    raw = kcc_features(grey, depth, valid, ChannelNorm.RAW)
+    raw = kcc_features(grey, depth, valid, ChannelNorm.RAW, fill_holes=1)
     torch.testing.assert_close(raw, torch.stack([grey, depth], 1) * valid[:, None])
-    f = kcc_features(grey, depth, valid, "standardize")
+    f = kcc_features(grey, depth, valid, "standardize", fill_holes=1)
     assert (f[~valid[:, None].expand_as(f)] == 0).all()
     for b in range(2):
         vals = f[b][:, valid[b]]
@@ -396,6 +396,30 @@ def test_features_standardize_valid_pixels_and_zero_holes():
     # A constant channel stays 0 rather than dividing by zero.
     flat = kcc_features(grey, torch.full_like(depth, 1.5), valid)
     assert (flat[:, 1] == 0).all() and torch.isfinite(flat).all()
+
+
+def test_hole_filling_takes_the_mean_of_valid_neighbours():
+    gen = _gen(13)
+    grey = torch.rand(1, 9, 10, generator=gen, dtype=torch.float64)
+    depth = 1 + torch.rand(1, 9, 10, generator=gen, dtype=torch.float64)
+    valid = torch.rand(1, 9, 10, generator=gen) > 0.4
+    valid[0, 0:3, 0:3] = False  # (0, 0) has no valid pixel in its 3x3 window: stays a hole
+    valid[0, 0, 3] = True
+    f = kcc_features(grey, depth, valid, ChannelNorm.RAW, fill_holes=3)
+    x = torch.stack([grey, depth], 1)[0]
+    for i in range(9):
+        for j in range(10):
+            win = valid[0, max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2]
+            if valid[0, i, j]:
+                expected = x[:, i, j]
+            elif win.any():
+                expected = x[:, max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2][:, win].mean(dim=1)
+            else:
+                expected = torch.zeros(2, dtype=torch.float64)
+            torch.testing.assert_close(f[0, :, i, j], expected, atol=1e-12, rtol=0)
+    assert (f[0, :, 0, 0] == 0).all() and (f[0, :, 1, 1] == 0).all()
+    with pytest.raises(ConfigError, match="fill_holes"):
+        kcc_features(grey, depth, valid, fill_holes=2)
 
 
 def test_config_defaults_are_the_papers_and_bad_values_raise():
