@@ -226,6 +226,21 @@ def _wrap(i: Tensor, n: int) -> Tensor:
     return torch.remainder(i + n // 2, n) - n // 2
 
 
+def _box_sum(x: Tensor, k: int) -> Tensor:
+    """Sum over the k x k window centred on each pixel of (B, C, H, W) images, zero outside (separable)."""
+    H, W = x.shape[-2:]
+    h = k // 2
+    xp = F.pad(x, (h, h, 0, 0))
+    rows = xp[..., 0:W].clone()
+    for i in range(1, k):  # k is a small window side, not a pixel count
+        rows += xp[..., i : i + W]
+    rp = F.pad(rows, (0, 0, h, h))
+    out = rp[..., 0:H, :].clone()
+    for i in range(1, k):
+        out += rp[..., i : i + H, :]
+    return out
+
+
 def _check_images(x: Tensor, name: str, dims: dict[str, int]) -> None:
     check_shape(x, "B C H W", name, dims)
     check_float(x, name)
@@ -281,10 +296,9 @@ def kcc_features(
     x = torch.stack([grey, depth.to(grey.dtype)], dim=1)  # (B, 2, H, W)
     m = valid[:, None].to(x.dtype)
     if fill_holes > 1:
-        k = fill_holes
-        # Box means of x*m and of m share the k*k divisor, so their ratio is the mean over valid pixels.
-        num = F.avg_pool2d(x * m, k, stride=1, padding=k // 2)
-        den = F.avg_pool2d(m, k, stride=1, padding=k // 2)
+        # Ratio of box sums of x*m and of m: the mean over the valid pixels of each window.
+        sums = _box_sum(torch.cat([x * m, m], dim=1), fill_holes)  # (B, 3, H, W)
+        num, den = sums[:, :2], sums[:, 2:]
         has = den > 0
         x = torch.where(valid[:, None], x, num / torch.where(has, den, torch.ones_like(den)))
         m = (valid[:, None] | has).to(x.dtype)
@@ -455,26 +469,21 @@ def _argmax(g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return flat // W, flat % W, value
 
 
-# LS quadratic fit on a 3x3 stencil: rows of the pseudo-inverse give a, b_x, b_y, d_xx, d_yy, d_xy.
-def _quadratic_pinv(ref: Tensor) -> Tensor:
-    dy, dx = torch.meshgrid(
-        torch.arange(-1, 2, dtype=ref.dtype, device=ref.device),
-        torch.arange(-1, 2, dtype=ref.dtype, device=ref.device),
-        indexing="ij",
-    )
-    dx, dy = dx.reshape(-1), dy.reshape(-1)
-    A = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dy * dy, dx * dy], dim=1)  # (9, 6)
-    return torch.linalg.pinv(A)  # (6, 9)
-
-
 def _refine_quadratic(g: Tensor, row: Tensor, col: Tensor) -> tuple[Tensor, Tensor]:
     B, H, W = g.shape
     off = torch.arange(-1, 2, device=g.device)
     rr = torch.remainder(row[:, None, None] + off[None, :, None], H)
     cc = torch.remainder(col[:, None, None] + off[None, None, :], W)
-    vals = g.reshape(B, H * W).gather(1, (rr * W + cc).reshape(B, 9))  # (B, 9) row-major (dy, dx)
-    a = vals @ _quadratic_pinv(g).T  # (B, 6)
-    bx, by, dxx, dyy, dxy = a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5]
+    f = g.reshape(B, H * W).gather(1, (rr * W + cc).reshape(B, 9)).reshape(B, 3, 3)  # [dy + 1, dx + 1]
+    # Least-squares fit of a + b·d + d_xx dx² + d_yy dy² + d_xy dx dy on the 3x3 stencil. The odd
+    # terms are orthogonal to the rest; solving the 3x3 normal equations of {1, dx², dy²} gives
+    # d_xx = Σ f dx² / 2 - Σ f / 3 (and likewise d_yy).
+    d = torch.arange(-1, 2, dtype=g.dtype, device=g.device)
+    sx, sy = (f * d).sum(dim=(1, 2)), (f * d[:, None]).sum(dim=(1, 2))
+    sxx, syy = (f * d.square()).sum(dim=(1, 2)), (f * d.square()[:, None]).sum(dim=(1, 2))
+    sxy, total = (f * (d[:, None] * d)).sum(dim=(1, 2)), f.sum(dim=(1, 2))
+    bx, by = sx / 6, sy / 6
+    dxx, dyy, dxy = sxx / 2 - total / 3, syy / 2 - total / 3, sxy / 4
     # Stationary point of b·d + d^T [[dxx, dxy/2],[dxy/2, dyy]] d.
     hxx, hyy, hxy = 2 * dxx, 2 * dyy, dxy
     det = hxx * hyy - hxy * hxy

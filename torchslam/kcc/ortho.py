@@ -201,12 +201,13 @@ def orthographic_project(
     Each valid point is rotated by ``rotation`` and dropped into pixel
     ``(floor((x - c_x) / r + W / 2), floor((y - c_y) / r + H / 2))``; points outside the image are
     cropped. Where several points share a pixel the one with the smallest ``z`` (nearest to the
-    viewer) wins; exact ties go to the lowest point index, so the result is deterministic.
+    viewer) wins; ties (z equal in float32) go to the lowest point index, so the result is
+    deterministic.
 
-    The z-buffer is two scatter passes over flattened ``(b, pixel)`` indices (no loop over the
-    batch or the points): ``scatter_reduce("amin")`` of z gives each pixel's nearest depth, and a
-    second ``"amin"`` of the point index among the points that reach it picks the winner, whose
-    grey and z are then gathered. The gather keeps the output differentiable with respect to
+    The z-buffer is a single ``scatter_reduce("amin")`` over flattened ``(b, pixel)`` indices
+    (no loop over the batch or the points) of 64-bit keys that pack an order-preserving integer
+    image of each point's float32 z above its flat index; the winner's grey and z (in the
+    input dtype) are then gathered. The gather keeps the output differentiable with respect to
     ``grey`` and the points' z (the pixel assignment itself is discrete).
 
     Args:
@@ -231,30 +232,34 @@ def orthographic_project(
     H, W = _check_size(size)
     rotation, center = _rotation_and_center(points, rotation, center, dims)
     B, N, _ = points.shape
+    if B * N >= 2**32:
+        raise ShapeError(f"points: at most 2^32 points per call fit the z-buffer keys, got {B} x {N}")
     HW = H * W
     p = _rotate(points, rotation)
     r = resolution.to(p.dtype)[:, None]  # (B, 1)
-    u = (p[..., 0] - center[:, None, 0]) / r + W / 2
-    v = (p[..., 1] - center[:, None, 1]) / r + H / 2
+    inv_r = 1.0 / r
+    u = torch.addcmul(W / 2 - center[:, 0:1] * inv_r, p[..., 0], inv_r)  # (B, N) = (x - c_x) / r + W / 2
+    v = torch.addcmul(H / 2 - center[:, 1:2] * inv_r, p[..., 1], inv_r)
     # Comparisons on the float coordinates first: NaN/inf (bad r, bad points) fail them.
     inside = valid & (u >= 0) & (u < W) & (v >= 0) & (v < H) & torch.isfinite(p[..., 2]) & (r > 0)
-    col = torch.where(inside, u, torch.zeros_like(u)).floor().long().clamp_(0, W - 1)
-    row = torch.where(inside, v, torch.zeros_like(v)).floor().long().clamp_(0, H - 1)
+    # Truncation is floor for the non-negative coordinates that matter; the others (including
+    # NaN) are replaced by the trash slot below, whatever integer they became.
+    col = u.clamp(0, W - 1).long()
+    row = v.clamp(0, H - 1).long()
     batch = torch.arange(B, device=p.device)[:, None]
     trash = B * HW  # one extra slot collects every point that is not rendered
     flat = torch.where(inside, batch * HW + row * W + col, torch.full_like(col, trash)).flatten()  # (B*N,)
-    z = p[..., 2].detach().flatten()
-    zbuf = torch.full((B * HW + 1,), math.inf, dtype=p.dtype, device=p.device)
-    zbuf = zbuf.scatter_reduce(0, flat, z, reduce="amin", include_self=True)
-    winner = (z == zbuf[flat]) & (flat != trash)
-    pid = torch.arange(B * N, device=p.device)
-    sentinel = B * N
-    best = torch.full((B * HW + 1,), sentinel, dtype=torch.long, device=p.device)
-    best = best.scatter_reduce(
-        0, torch.where(winner, flat, torch.full_like(flat, trash)), pid, reduce="amin", include_self=True
-    )[:trash]  # (B*H*W,)
-    pix_valid = best < sentinel
-    src = best.clamp(max=sentinel - 1)
+    # One scatter does the whole z-buffer: each point's key packs an order-preserving integer
+    # image of its float32 z (high 32 bits) with its flat point index (low 32 bits), so the
+    # per-pixel minimum key is the nearest point, ties going to the lowest index.
+    bits = p[..., 2].detach().to(torch.float32).contiguous().view(torch.int32)
+    zkey = (bits ^ ((bits >> 31) & 0x7FFFFFFF)).to(torch.int64).flatten()  # monotonic in z
+    key = (zkey << 32) | torch.arange(B * N, device=p.device)
+    empty = torch.iinfo(torch.int64).max
+    best = torch.full((trash + 1,), empty, dtype=torch.int64, device=p.device)
+    best = best.scatter_reduce(0, flat, key, reduce="amin", include_self=True)[:trash]  # (B*H*W,)
+    pix_valid = best != empty
+    src = (best & 0xFFFFFFFF).clamp(max=B * N - 1)
     out_grey = torch.where(pix_valid, grey.to(p.dtype).flatten()[src], p.new_zeros(()))
     out_depth = torch.where(pix_valid, p[..., 2].flatten()[src], p.new_zeros(()))
     return OrthoImages(
