@@ -12,6 +12,7 @@ import torch
 from torchslam.errors import ConfigError, DTypeError, ShapeError
 from torchslam.features import ORBConfig, extract_orb
 from torchslam.loop import MILDConfig, MILDDatabase, MILDError, substring_keys
+from torchslam.loop import mild as mild_module
 
 
 def _rand(n, gen):
@@ -75,16 +76,20 @@ def test_substring_keys_match_integer_reference():
     assert substring_keys(d, 16).max() < 2**16
 
 
-@pytest.mark.parametrize("bits", [16, 8])
-def test_multi_index_lookup_equals_substring_scan(bits):
+@pytest.mark.parametrize("bits,scale", [(16, 1), (8, 1), (16, 12)])
+def test_multi_index_lookup_equals_substring_scan(bits, scale):
     gen = torch.Generator().manual_seed(1)
     cfg = MILDConfig(tables=256 // bits, bits=bits)
     db = MILDDatabase(cfg)
-    sizes = [300, 0, 1, 257, 40, 512, 3, 128, 90, 300, 7, 600]
+    sizes = [300, 0, 1, 257, 40, 512, 3, 128, 90, 300, 7, 600] * scale
     sets = [_rand(k, gen) for k in sizes]
     query = torch.cat([_flip_bits(sets[3][:60], 40, gen), _flip_bits(sets[9][:60], 25, gen), _rand(80, gen)])
     for i, s in enumerate(sets):
         db.add(100 + i, s)
+    # Small runs are searched by bisection, large ones through CSR bucket offsets: cover both.
+    with_offsets = [lvl.offsets is not None for lvl in db._levels]
+    assert any(with_offsets) == (bits == 8 or scale > 1)
+    assert not all(with_offsets) or bits == 8
     q_idx, kf_ids, d_idx = db.candidates(query)
     got = list(zip(q_idx.tolist(), (kf_ids - 100).tolist(), d_idx.tolist()))
     ref = _ref_candidates(query.numpy(), [s.numpy() for s in sets], bits)
@@ -114,7 +119,7 @@ def test_levels_stay_sorted_and_geometric():
     assert torch.equal(all_ids.sort(dim=1).values, torch.arange(total).expand(16, total))
 
 
-def test_scores_equal_brute_force_reference():
+def test_scores_equal_brute_force_reference(monkeypatch):
     gen = torch.Generator().manual_seed(3)
     cfg = MILDConfig(max_distance=40, sigma=20.0)
     db = MILDDatabase(cfg)
@@ -128,6 +133,11 @@ def test_scores_equal_brute_force_reference():
     ref = _ref_scores(query.numpy(), [s.numpy() for s in sets], cfg)
     assert np.allclose(scores.numpy(), ref, rtol=1e-12, atol=1e-15)
     assert ref[0] > 0.1 and ref[4] > 0.05 and ref[2] == 0.0
+    # Candidate pairs are processed in chunks: tiny chunks must give the same scores and candidates.
+    monkeypatch.setattr(mild_module, "_HIT_CHUNK", 7)
+    assert np.allclose(db.similarity(query)[1].numpy(), ref, rtol=1e-12, atol=1e-15)
+    got = set(zip(*(t.tolist() for t in db.candidates(query))))
+    assert got == _ref_candidates(query.numpy(), [s.numpy() for s in sets], cfg.bits)
 
 
 def test_planted_revisit_is_top1_and_random_query_scores_zero():

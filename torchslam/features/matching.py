@@ -38,6 +38,7 @@ __all__ = [
     "pad_descriptors",
     "hamming_distance",
     "hamming_distance_packed",
+    "hamming_distance_indexed",
     "match_descriptors",
     "match_descriptors_batched",
 ]
@@ -114,6 +115,23 @@ def _check_descriptors(d: Tensor, spec: str, name: str, dims: dict) -> None:
         raise DTypeError(f"{name}: expected uint8 descriptors, got {d.dtype}")
 
 
+def _popcount64_(x: Tensor) -> Tensor:
+    # In place: fewer temporaries matter more than operation count on large tensors.
+    t = x >> 1
+    t &= _M1  # the mask also clears the sign bits an arithmetic shift brings in
+    x -= t  # 2-bit field sums
+    t = x >> 2
+    t &= _M2
+    x &= _M2
+    x += t  # 4-bit field sums
+    t = x >> 4
+    x += t
+    x &= _M4  # byte sums
+    x *= _H01  # wrapping multiply: the top byte collects the sum of all bytes
+    x >>= 56
+    return x
+
+
 def popcount64(x: Tensor) -> Tensor:
     """Count the set bits of every int64 element (SWAR, no lookup table).
 
@@ -125,10 +143,7 @@ def popcount64(x: Tensor) -> Tensor:
     """
     if x.dtype != torch.int64:
         raise DTypeError(f"x: expected int64, got {x.dtype}")
-    x = x - ((x >> 1) & _M1)  # 2-bit field sums; the mask clears the sign bits an arithmetic shift brings in
-    x = (x & _M2) + ((x >> 2) & _M2)  # 4-bit field sums
-    x = (x + (x >> 4)) & _M4  # byte sums
-    return (x * _H01) >> 56  # top byte = sum of all bytes (wrapping multiply)
+    return _popcount64_(x.clone())
 
 
 def pack_descriptors(descriptors: Tensor) -> Tensor:
@@ -268,7 +283,38 @@ def hamming_distance_packed(w1: Tensor, w2: Tensor) -> Tensor:
     """
     check_shape(w1, "... 4", "w1")
     check_shape(w2, "... 4", "w2")
-    return popcount64(w1 ^ w2).sum(-1)
+    return _popcount64_(w1 ^ w2).sum(-1)
+
+
+def hamming_distance_indexed(w1: Tensor, idx1: Tensor, w2: Tensor, idx2: Tensor, chunk: int = 1 << 15) -> Tensor:
+    """Hamming distances between ``w1[idx1[h]]`` and ``w2[idx2[h]]`` for a long list of pairs.
+
+    The pairs are processed in chunks that fit in cache, which on a CPU is several times faster
+    than gathering all rows first (candidate lists of a hash lookup hold millions of pairs).
+
+    Args:
+        w1: (N1, 4) int64 packed descriptors.
+        idx1: (H,) int64 row indices into ``w1``.
+        w2: (N2, 4) int64 packed descriptors.
+        idx2: (H,) int64 row indices into ``w2``.
+        chunk: pairs per chunk.
+
+    Returns:
+        (H,) int64 distances in bits.
+    """
+    dims: dict[str, int] = {}
+    check_shape(w1, "N1 4", "w1")
+    check_shape(w2, "N2 4", "w2")
+    check_shape(idx1, "H", "idx1", dims)
+    check_shape(idx2, "H", "idx2", dims)
+    h = idx1.shape[0]
+    out = torch.empty(h, dtype=torch.int64, device=w1.device)
+    step = h if w1.device.type != "cpu" else max(1, chunk)
+    for s in range(0, h, max(step, 1)):
+        x = w1.index_select(0, idx1[s : s + step])
+        x ^= w2.index_select(0, idx2[s : s + step])
+        torch.sum(_popcount64_(x), -1, out=out[s : s + step])
+    return out
 
 
 def pad_descriptors(descriptors: list[Tensor]) -> tuple[Tensor, Tensor]:

@@ -1,6 +1,6 @@
 """MILD: loop-closure candidates by multi-index hashing of binary descriptors.
 
-GC-SLAM detects loops with MILD (FastGO paper §IV-B, its ref. [3]: Han and Fang, "MILD:
+GC-SLAM detects loops with MILD (FastGO paper §IV-C, its ref. [3]: Han and Fang, "MILD:
 Multi-index hashing for appearance based loop closure detection", ICME 2017). Instead of a
 trained bag-of-words vocabulary, image similarity is measured by matching descriptors directly,
 and multi-index hashing (Norouzi et al.) makes that fast: every 256-bit descriptor is cut into
@@ -15,12 +15,13 @@ matches up to ``max_distance`` are found with a probability that falls with the 
 efficiency/recall trade-off MILD analyses).
 
 Tensor layout. A hash table is a pair of (n,) arrays sorted by ``(substring value, descriptor
-id)``; looking a value up is two ``searchsorted`` calls, and the m tables are stacked as rows
-of (m, n) arrays so they are probed together. Tables are kept as a few sorted *levels* of
-geometrically decreasing size (an LSM tree): adding a keyframe creates a small level and merges
-levels of similar size with a linear ``searchsorted``-and-scatter merge, so insertion costs
-amortised O(log N) per descriptor and a query probes O(log N) levels. No Python loop runs over
-descriptors.
+id)``, and the m tables are stacked as rows of (m, n) arrays so they are probed together. A
+bucket is found by ``searchsorted`` in a small run and through CSR bucket offsets in a large one.
+Tables are kept as a few sorted *levels* of geometrically decreasing size (an LSM tree): adding
+a keyframe creates a small level and merges levels of similar size with a linear
+``searchsorted``-and-scatter merge, so insertion costs amortised O(log N) per descriptor and a
+query probes O(log N) levels. No Python loop runs over descriptors; candidate pairs are expanded
+and checked in cache-sized chunks.
 
 Scoring (torchslam's choice, after MILD's distance-weighted vote). Each query descriptor q
 votes at most once per keyframe k, with the weight of its closest matched descriptor there:
@@ -41,13 +42,15 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigError, DTypeError, TorchSlamError, check_shape
-from ..features.matching import pack_descriptors, popcount64
+from ..features.matching import hamming_distance_indexed, pack_descriptors
 
 __all__ = ["MILDConfig", "MILDDatabase", "MILDError", "substring_keys"]
 
 logger = logging.getLogger(__name__)
 
 _DESCRIPTOR_BITS = 256
+# Candidate pairs handled at once on a CPU (see MILDDatabase._hit_chunks).
+_HIT_CHUNK = 1 << 15
 
 
 class MILDError(TorchSlamError, ValueError):
@@ -117,20 +120,43 @@ def substring_keys(descriptors: Tensor, tables: int = 16) -> Tensor:
 
 
 class _Level:
-    """One sorted run of all m tables: ``keys`` and ``ids`` (m, n), sorted by (key, id) per row."""
+    """One sorted run of all m tables: ``keys`` and ``ids`` (m, n), sorted by (key, id) per row.
 
-    __slots__ = ("keys", "ids")
+    When the run is large compared with the ``2^bits`` possible substring values it also keeps
+    CSR bucket offsets ``offsets`` (m, 2^bits + 1): bucket ``v`` of table ``t`` is
+    ``keys[t, offsets[t, v] : offsets[t, v + 1]]``, a lookup without binary search (which is
+    cache-unfriendly on large runs).
+    """
 
-    def __init__(self, keys: Tensor, ids: Tensor) -> None:
+    __slots__ = ("keys", "ids", "offsets")
+
+    def __init__(self, keys: Tensor, ids: Tensor, bits: int) -> None:
         self.keys = keys
         self.ids = ids
+        self.offsets = None
+        m, n = keys.shape
+        if 2**bits <= 4 * n:
+            buckets = 2**bits
+            flat = (keys.to(torch.int64) + buckets * torch.arange(m, device=keys.device)[:, None]).flatten()
+            counts = torch.bincount(flat, minlength=m * buckets).reshape(m, buckets)
+            self.offsets = torch.cat([counts.new_zeros(m, 1), torch.cumsum(counts, 1)], dim=1)
 
     @property
     def size(self) -> int:
         return int(self.keys.shape[1])
 
+    def bucket_ranges(self, qkeys: Tensor) -> tuple[Tensor, Tensor]:
+        """(m, Q) start and end positions of each query substring's bucket in each table."""
+        if self.offsets is not None:
+            k = qkeys.to(torch.int64)
+            return torch.gather(self.offsets, 1, k), torch.gather(self.offsets, 1, k + 1)
+        return (
+            torch.searchsorted(self.keys, qkeys, right=False),
+            torch.searchsorted(self.keys, qkeys, right=True),
+        )
 
-def _merge(old: _Level, new: _Level) -> _Level:
+
+def _merge(old: _Level, new: _Level, bits: int) -> _Level:
     """Merge two levels; every id in ``new`` is larger than every id in ``old``."""
     m, na, nb = old.keys.shape[0], old.size, new.size
     dev = old.keys.device
@@ -143,7 +169,7 @@ def _merge(old: _Level, new: _Level) -> _Level:
     keys.scatter_(1, pos_new, new.keys)
     ids.scatter_(1, pos_old, old.ids)
     ids.scatter_(1, pos_new, new.ids)
-    return _Level(keys, ids)
+    return _Level(keys, ids, bits)
 
 
 class MILDDatabase:
@@ -239,46 +265,62 @@ class MILDDatabase:
             keys = substring_keys(descriptors, self.cfg.tables).to(self._key_dtype)  # (m, K)
             keys, order = torch.sort(keys, dim=1, stable=True)
             ids = (order + self._n).to(torch.int32)
-            self._levels.append(_Level(keys, ids))
+            self._levels.append(_Level(keys, ids, self.cfg.bits))
             # Merge runs of similar size so that sizes fall geometrically along the list.
             while len(self._levels) > 1 and self._levels[-2].size <= 2 * self._levels[-1].size:
                 new = self._levels.pop()
-                self._levels[-1] = _merge(self._levels[-1], new)
+                self._levels[-1] = _merge(self._levels[-1], new, self.cfg.bits)
         self._kf_ids.append(keyframe_id)
         self._kf_index[keyframe_id] = slot
         self._kf_start.append(self._n)
         self._kf_count.append(k)
         self._n += k
 
-    def _hits(self, descriptors: Tensor) -> tuple[Tensor, Tensor]:
-        """All (query index, stored id) pairs that share a substring, one per agreeing table.
+    def _hit_chunks(self, descriptors: Tensor):
+        """Yield all (query index, stored id) pairs that share a substring, in chunks.
 
-        Returns:
+        A pair appears once per table on which the two descriptors agree. On a CPU the pairs come
+        in chunks of about ``_HIT_CHUNK`` so that the work on them stays in cache (real ORB
+        substrings are far from uniform: common buckets give millions of pairs per query).
+
+        Yields:
             query_index: (H,) int64.
-            stored_id: (H,) int64 global descriptor ids (insertion order); a pair appears once
-                per table on which the two descriptors agree.
+            stored_id: (H,) int64 global descriptor ids (insertion order).
         """
         dev = descriptors.device
         q = descriptors.shape[0]
         qkeys = substring_keys(descriptors, self.cfg.tables).to(self._key_dtype)  # (m, Q)
-        out_q, out_id = [], []
         for level in self._levels:
-            lo = torch.searchsorted(level.keys, qkeys, right=False)  # (m, Q)
-            hi = torch.searchsorted(level.keys, qkeys, right=True)
-            counts = (hi - lo).flatten()  # (m * Q,), entry t * Q + i
-            total = int(counts.sum())
+            lo, hi = level.bucket_ranges(qkeys)  # (m, Q)
+            counts = (hi - lo).flatten()  # (m * Q,): probe t * Q + i
+            starts = lo.flatten()
+            csum = torch.cumsum(counts, 0)
+            total = int(csum[-1]) if csum.numel() else 0
             if total == 0:
                 continue
-            probe = torch.repeat_interleave(torch.arange(counts.shape[0], device=dev), counts, output_size=total)
-            first = torch.cumsum(counts, 0) - counts
-            pos = lo.flatten()[probe] + (torch.arange(total, device=dev) - first[probe])  # (H,)
-            table = probe // q
-            out_q.append(probe % q)
-            out_id.append(level.ids[table, pos].to(torch.int64))
-        if not out_q:
-            empty = torch.zeros(0, dtype=torch.int64, device=dev)
-            return empty, empty.clone()
-        return torch.cat(out_q), torch.cat(out_id)
+            # Cut the probe list where the running hit count crosses multiples of the chunk size.
+            step = _HIT_CHUNK if dev.type == "cpu" else total
+            bounds = [0, counts.shape[0]]
+            if total > step:
+                marks = torch.arange(step, total, step, device=dev)
+                cuts = (torch.searchsorted(csum, marks, right=False) + 1).tolist()
+                bounds = sorted(set(bounds) | set(cuts))
+            # Per probe: its query descriptor, and the flat position in ``ids`` of its bucket
+            # start minus the number of hits before it, so hit h of the chunk sits at base + h.
+            probe_query = torch.arange(counts.shape[0], device=dev) % q
+            probe_table = torch.arange(counts.shape[0], device=dev) // q
+            flat_start = probe_table * level.size + starts
+            ids_flat = level.ids.view(-1)
+            for p0, p1 in zip(bounds[:-1], bounds[1:]):
+                cnt = counts[p0:p1]
+                local = torch.cumsum(cnt, 0)
+                n = int(local[-1])
+                if n == 0:
+                    continue
+                probe = torch.repeat_interleave(torch.arange(p1 - p0, device=dev), cnt, output_size=n)  # (H,)
+                base = flat_start[p0:p1] - (local - cnt)
+                flat = base[probe] + torch.arange(n, device=dev)
+                yield probe_query[p0:p1][probe], ids_flat[flat].to(torch.int64)
 
     def candidates(self, descriptors: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Stored descriptors that agree with a query descriptor on at least one substring.
@@ -295,9 +337,9 @@ class MILDDatabase:
             Each pair appears once, sorted by (query_index, stored order).
         """
         self._check(descriptors, "descriptors")
-        q_idx, ids = self._hits(descriptors)
         n = max(self._n, 1)
-        pair = torch.unique(q_idx * n + ids)  # sorted, one entry per pair
+        codes = [torch.unique(qi * n + ids) for qi, ids in self._hit_chunks(descriptors)]
+        pair = torch.unique(torch.cat(codes)) if codes else torch.zeros(0, dtype=torch.int64, device=descriptors.device)
         q_idx, ids = pair // n, pair % n
         if ids.numel() == 0:
             return q_idx, ids.clone(), ids.clone()
@@ -322,11 +364,18 @@ class MILDDatabase:
         q = descriptors.shape[0]
         if n_kf == 0 or q == 0 or self._n == 0:
             return self.keyframe_ids, scores
-        q_idx, ids = self._hits(descriptors)
         qwords = pack_descriptors(descriptors)
-        dist = popcount64(qwords[q_idx] ^ self._words[ids]).sum(-1)  # (H,)
-        ok = dist <= self.cfg.max_distance
-        q_idx, ids, dist = q_idx[ok], ids[ok], dist[ok]
+        words = self._words[: self._n]
+        kept_q, kept_id, kept_d = [], [], []
+        for qi, ids in self._hit_chunks(descriptors):
+            d = hamming_distance_indexed(qwords, qi, words, ids, chunk=_HIT_CHUNK)
+            ok = d <= self.cfg.max_distance
+            kept_q.append(qi[ok])
+            kept_id.append(ids[ok])
+            kept_d.append(d[ok])
+        if not kept_q:
+            return self.keyframe_ids, scores
+        q_idx, ids, dist = torch.cat(kept_q), torch.cat(kept_id), torch.cat(kept_d)
         if dist.numel():
             # One vote per (query descriptor, keyframe): its closest match there. Taking the
             # minimum also removes the repeats of a pair found through several tables.
