@@ -211,7 +211,8 @@ def test_find_peak_keeps_integer_peak_where_refinement_fails():
     g[0, 3:6, 5] = 0.9
     g[0, 3:6, 4] = torch.tensor([-5.0, 1.0, -5.0], dtype=torch.float64)
     # Item 1: a lone spike beside a broad bump: the smooth maximum lies more than 1 px away.
-    yy, xx = torch.meshgrid(torch.arange(16.0, dtype=torch.float64), torch.arange(16.0, dtype=torch.float64), indexing="ij")
+    ax = torch.arange(16.0, dtype=torch.float64)
+    yy, xx = torch.meshgrid(ax, ax, indexing="ij")
     g[1] = 0.95 * torch.exp(-((yy - 7) ** 2 + (xx - 11) ** 2) / 8.0)
     g[1, 7, 6] = 1.0
     for mode in ("quadratic", "fourier"):
@@ -449,7 +450,8 @@ def test_kernel_correlator_module_matches_functions_and_learns(grey_patches):
     torch.testing.assert_close(pred.shift, ref.shift)
     torch.testing.assert_close(pred.psr, ref.psr)
 
-    learn = KernelCorrelator(KCCConfig(soft_argmax=True), learnable={"sigma", "lam", "temperature"}, dtype=torch.float64)
+    names = {"sigma", "lam", "temperature"}
+    learn = KernelCorrelator(KCCConfig(soft_argmax=True), learnable=names, dtype=torch.float64)
     assert {n for n, _ in learn.named_parameters()} == {"sigma", "lam", "temperature"}
     out = learn(x, learn.fit(z))
     loss = (out.shift - torch.tensor([[2.4, -1.2]], dtype=torch.float64)).square().sum()

@@ -37,13 +37,18 @@ def _moved(o: OrthoImages, s, dz=0.0, dgrey=0.0) -> OrthoImages:
     back = -torch.as_tensor(s)
     valid = shift_image(o.valid, back, False)
     grey = torch.where(valid, shift_image(o.grey, back, 0.0) + dgrey, torch.zeros_like(o.grey))
-    depth = torch.where(valid, shift_image(o.depth, back, 0.0) + torch.as_tensor(dz, dtype=o.depth.dtype).reshape(-1, 1, 1), torch.zeros_like(o.depth))
+    dz = torch.as_tensor(dz, dtype=o.depth.dtype).reshape(-1, 1, 1)
+    depth = torch.where(valid, shift_image(o.depth, back, 0.0) + dz, torch.zeros_like(o.depth))
     return OrthoImages(grey, depth, valid, o.resolution, o.center)
 
 
 def _expand(o: OrthoImages, B: int) -> OrthoImages:
     return OrthoImages(
-        o.grey.expand(B, -1, -1), o.depth.expand(B, -1, -1), o.valid.expand(B, -1, -1), o.resolution.expand(B), o.center.expand(B, -1)
+        o.grey.expand(B, -1, -1),
+        o.depth.expand(B, -1, -1),
+        o.valid.expand(B, -1, -1),
+        o.resolution.expand(B),
+        o.center.expand(B, -1),
     )
 
 
@@ -109,7 +114,8 @@ def test_depth_translation_batched_equals_per_item(kf):
     s = torch.tensor([[4, 1], [-7, 2], [0, 0]])
     dz = torch.tensor([0.01, -0.05, 0.0], dtype=torch.float64)
     frames = [_moved(kf, s[i : i + 1], dz=dz[i : i + 1]) for i in range(3)]
-    batch = OrthoImages(*(torch.cat([getattr(f, n) for f in frames]) for n in ("grey", "depth", "valid", "resolution", "center")))
+    fields = ("grey", "depth", "valid", "resolution", "center")
+    batch = OrthoImages(*(torch.cat([getattr(f, n) for f in frames]) for n in fields))
     out = depth_translation(batch, _expand(kf, 3), s)
     for i in range(3):
         one = depth_translation(frames[i], kf, s[i : i + 1])
@@ -141,7 +147,8 @@ def test_fusion_fills_holes_and_skips_unmatched_pixels(kf):
     obj = torch.zeros_like(kf.valid)
     obj[:, 40:80, 40:90] = True
     obj_frame = shift_image(obj, -s, False)
-    frame = OrthoImages(torch.where(obj_frame, frame.grey + 0.5, frame.grey), frame.depth, frame.valid, frame.resolution, frame.center)
+    grey = torch.where(obj_frame, frame.grey + 0.5, frame.grey)
+    frame = OrthoImages(grey, frame.depth, frame.valid, frame.resolution, frame.center)
     dz = depth_translation(frame, keyframe, s, cfg.T_c, cfg.T_d)
     fused = fuse_keyframe(keyframe_map(keyframe), frame, s, dz.t_z, dz.matched, torch.tensor([cfg.T_M + 1]), cfg.T_M)
     seen = shift_image(frame.valid, s, False)
@@ -171,7 +178,8 @@ def test_fusion_is_the_weighted_moving_average_and_gated_by_psr():
     xd = zd + 0.03 + 0.02 * torch.rand(B, H, W, generator=gen, dtype=torch.float64)
     xv = torch.rand(B, H, W, generator=gen) > 0.2
     km = KeyframeMap(zg * (wz > 0), zd * (wz > 0), wz)
-    frame = OrthoImages(xg * xv, xd * xv, xv, torch.ones(B, dtype=torch.float64), torch.zeros(B, 2, dtype=torch.float64))
+    ones, zeros = torch.ones(B, dtype=torch.float64), torch.zeros(B, 2, dtype=torch.float64)
+    frame = OrthoImages(xg * xv, xd * xv, xv, ones, zeros)
     zero = torch.zeros(B, 2, dtype=torch.long)
     dz = depth_translation(frame, km, zero)
     out = fuse_keyframe(km, frame, zero, dz.t_z, dz.matched, torch.tensor([150.0, 80.0]), 100.0)

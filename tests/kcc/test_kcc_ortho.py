@@ -87,7 +87,9 @@ def test_zbuffer_equals_per_point_loop_with_rotation_and_center(dtype):
     R = R.round()  # exact quarter turns
     r = torch.tensor([0.125, 0.25, 0.0625], dtype=torch.float64)
     center = torch.tensor([[0.0, 0.0], [0.25, -0.125], [-0.5, 0.0]], dtype=torch.float64)
-    ref_grey, ref_depth, ref_valid = brute_zbuffer(pts.numpy(), grey.numpy(), valid.numpy(), R.numpy(), r.numpy(), center.numpy(), H, W)
+    ref_grey, ref_depth, ref_valid = brute_zbuffer(
+        pts.numpy(), grey.numpy(), valid.numpy(), R.numpy(), r.numpy(), center.numpy(), H, W
+    )
     out = orthographic_project(pts.to(dtype), grey.to(dtype), valid, R.to(dtype), r.to(dtype), (H, W), center.to(dtype))
     assert out.grey.dtype == dtype and out.valid.shape == (B, H, W)
     assert ref_valid.sum() > 40 and (~ref_valid).sum() > 5  # collisions and holes both occur
@@ -113,7 +115,9 @@ def test_projection_is_differentiable_in_grey_and_depth_of_the_winners():
     valid = torch.ones(1, 300, dtype=torch.bool)
     out = orthographic_project(pts, grey, valid, None, torch.tensor([0.25], dtype=torch.float64), (8, 8))
     (out.grey.sum() + 2 * out.depth.sum()).backward()
-    _, _, ref_valid = brute_zbuffer(pts.detach().numpy(), grey.detach().numpy(), valid.numpy(), np.eye(3)[None], [0.25], np.zeros((1, 2)), 8, 8)
+    _, _, ref_valid = brute_zbuffer(
+        pts.detach().numpy(), grey.detach().numpy(), valid.numpy(), np.eye(3)[None], [0.25], np.zeros((1, 2)), 8, 8
+    )
     winners = grey.grad[0] > 0
     assert winners.sum() == ref_valid.sum() == out.valid.sum()
     assert set(grey.grad[0].unique().tolist()) <= {0.0, 1.0}
@@ -158,22 +162,30 @@ def test_planted_translation_and_rotation_recovered_through_orthographic_images(
     kf = orthographic_project(pts_k, grey, valid, None, r, size)
     # Frame cameras displaced by d and rotated by R_ki (attitude known): p_i = R_ki^T (p_k - d).
     d = torch.tensor(
-        [[7 * r.item(), -4 * r.item(), 0.0], [0.0213, -0.0161, 0.0], [-0.0137, 0.0242, 0.031], [0.0311, 0.0087, -0.042]],
+        [
+            [7 * r.item(), -4 * r.item(), 0.0],  # an exact integer image shift
+            [0.0213, -0.0161, 0.0],
+            [-0.0137, 0.0242, 0.031],
+            [0.0311, 0.0087, -0.042],
+        ],
         dtype=torch.float64,
     )
-    R = so3_exp(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, -0.03, 0.02], [-0.04, 0.06, -0.05]], dtype=torch.float64))
+    phi = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, -0.03, 0.02], [-0.04, 0.06, -0.05]], dtype=torch.float64)
+    R = so3_exp(phi)
     B = d.shape[0]
     pts_i = torch.einsum("bji,bnj->bni", R, pts_k - d[:, None, :])  # R^T (p - d)
     rk = r.expand(B)
-    fr = orthographic_project(pts_i.float(), grey.expand(B, -1).float(), valid.expand(B, -1), R.float(), rk.float(), size)
+    grey_b, valid_b = grey.expand(B, -1).float(), valid.expand(B, -1)
+    fr = orthographic_project(pts_i.float(), grey_b, valid_b, R.float(), rk.float(), size)
     kfeat = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes).float()
     filt = kcc_train(kfeat.expand(B, -1, -1, -1), cfg.sigma, cfg.lam)
-    pred = kcc_predict(kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes), filt, cfg.sigma, rk.float())
+    xfeat = kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes)
+    pred = kcc_predict(xfeat, filt, cfg.sigma, rk.float())
     err_px = (pred.t_xy.double() + d[:, :2]).abs() / r
     assert err_px.max() < 0.2, err_px  # within r_k / 5
     assert torch.equal(pred.index[0], torch.tensor([-7, 4]))
     assert (pred.psr > cfg.T_M).all()
-    kf32 = orthographic_project(pts_k.float().expand(B, -1, -1), grey.float().expand(B, -1), valid.expand(B, -1), None, rk.float(), size)
+    kf32 = orthographic_project(pts_k.float().expand(B, -1, -1), grey_b, valid_b, None, rk.float(), size)
     dz = depth_translation(fr, kf32, pred.index, cfg.T_c, cfg.T_d)
     assert dz.ok.all()
     torch.testing.assert_close(dz.t_z.double(), -d[:, 2], atol=1.5e-3, rtol=0)
@@ -191,7 +203,8 @@ def test_grey_from_rgb_matches_opencv_and_points_follow_backprojection(tum_rgbd)
 
 def test_nonpositive_or_nan_resolution_gives_an_empty_image():
     pts = torch.rand(3, 50, 3, generator=_gen(3)) - 0.5
-    out = orthographic_project(pts, torch.rand(3, 50), torch.ones(3, 50, dtype=torch.bool), None, torch.tensor([0.0, -0.1, math.nan]), (4, 4))
+    bad_r = torch.tensor([0.0, -0.1, math.nan])
+    out = orthographic_project(pts, torch.rand(3, 50), torch.ones(3, 50, dtype=torch.bool), None, bad_r, (4, 4))
     assert not out.valid.any() and torch.isfinite(out.grey).all() and torch.isfinite(out.depth).all()
 
 

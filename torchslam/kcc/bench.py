@@ -94,7 +94,8 @@ def benchmark_frontend(
         points, grey, valid = rgbd_to_points(rgb, depth, intrinsics)
         r_k = choose_resolution(points, valid, size, cfg.coverage, cfg.sample_step)
         kf = orthographic_project(points, grey, valid, None, r_k, size)
-        filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes), cfg.sigma, cfg.lam)
+        z = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes)
+        filt = kcc_train(z, cfg.sigma, cfg.lam)
         _sync(device)
         train_ms = (time.perf_counter() - t0) * 1e3
 

@@ -667,7 +667,8 @@ def shift_variance(g: Tensor, peak_value: Tensor | None = None, resolution: Tens
         peak_value = g.reshape(B, -1).amax(dim=1)
     total = g.sum(dim=(1, 2))
     good = (peak_value > 0) & (total > 0)
-    var = torch.where(good, total / (2 * math.pi * torch.where(good, peak_value, torch.ones_like(peak_value))), math.inf)
+    safe_peak = torch.where(good, peak_value, torch.ones_like(peak_value))
+    var = torch.where(good, total / (2 * math.pi * safe_peak), math.inf)
     if resolution is not None:
         check_shape(resolution, f"{B}", "resolution")
         var = var * resolution.to(g.dtype).square()
