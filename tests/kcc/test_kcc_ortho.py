@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam.errors import DTypeError, ShapeError
+from torchslam.errors import ConfigError, DTypeError, ShapeError
 from torchslam.geometry import so3_exp
 from torchslam.kcc import (
     KCCConfig,
@@ -227,9 +227,9 @@ def test_bad_inputs_raise():
         orthographic_project(pts, grey, valid, None, r, center=torch.zeros(2, 3))
     with pytest.raises(ShapeError, match="size"):
         orthographic_project(pts, grey, valid, None, r, size=(0, 4))
-    with pytest.raises(ShapeError, match="coverage"):
+    with pytest.raises(ConfigError, match="coverage"):
         choose_resolution(pts, valid, coverage=1.5)
-    with pytest.raises(ShapeError, match="sample_step"):
+    with pytest.raises(ConfigError, match="sample_step"):
         choose_resolution(pts, valid, sample_step=0)
     with pytest.raises(DTypeError, match="points"):
         choose_resolution(pts.long(), valid)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import DTypeError, ShapeError, check_float, check_shape
+from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
 from ..geometry import backproject_depth
 
 __all__ = [
@@ -168,9 +168,9 @@ def choose_resolution(
     _check_points(points, valid, dims)
     H, W = _check_size(size)
     if not (0.0 < coverage <= 1.0):
-        raise ShapeError(f"coverage: expected a fraction in (0, 1], got {coverage!r}")
+        raise ConfigError(f"coverage: expected a fraction in (0, 1], got {coverage!r}")
     if not (isinstance(sample_step, int) and sample_step >= 1):
-        raise ShapeError(f"sample_step: expected a positive int, got {sample_step!r}")
+        raise ConfigError(f"sample_step: expected a positive int, got {sample_step!r}")
     rotation, center = _rotation_and_center(points, rotation, center, dims)
     pts = _rotate(points[:, ::sample_step], rotation)  # (B, M, 3)
     ok = valid[:, ::sample_step] & torch.isfinite(pts).all(dim=-1)
