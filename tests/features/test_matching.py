@@ -8,9 +8,11 @@ import pytest
 import torch
 
 from torchslam.errors import ConfigError, DTypeError, ShapeError
+from torchslam.features import matching as matching_module
 from torchslam.features import (
     HammingKernel,
     hamming_distance,
+    hamming_distance_indexed,
     hamming_distance_packed,
     match_descriptors,
     match_descriptors_batched,
@@ -93,6 +95,36 @@ def test_packed_distance_and_packing():
     assert wa.shape == (50, 4) and wa.dtype == torch.int64
     ref = np.unpackbits(a.numpy() ^ b.numpy(), axis=-1).sum(-1)
     assert np.array_equal(hamming_distance_packed(wa, wb).numpy(), ref)
+
+
+def test_indexed_distance_equals_reference_in_any_chunking():
+    gen = torch.Generator().manual_seed(11)
+    a, b = _rand((70, 32), gen), _rand((90, 32), gen)
+    i1 = torch.randint(0, 70, (1000,), generator=gen)
+    i2 = torch.randint(0, 90, (1000,), generator=gen)
+    ref = np.unpackbits(a.numpy()[i1.numpy()] ^ b.numpy()[i2.numpy()], axis=-1).sum(-1)
+    for chunk in (1, 7, 1000, 1 << 15):
+        got = hamming_distance_indexed(pack_descriptors(a), i1, pack_descriptors(b), i2, chunk=chunk)
+        assert np.array_equal(got.numpy(), ref)
+    empty = torch.zeros(0, dtype=torch.int64)
+    assert hamming_distance_indexed(pack_descriptors(a), empty, pack_descriptors(b), empty).shape == (0,)
+
+
+@pytest.mark.parametrize("kernel", ["swar", "lut", "matmul"])
+def test_row_blocks_do_not_change_results(kernel, monkeypatch):
+    """Distance matrices are computed in row blocks; mutual checks must combine blocks exactly."""
+    gen = torch.Generator().manual_seed(12)
+    a, b = _correlated(gen, 150, 120)
+    a[100:] = a[:50]  # duplicate queries: ties between rows that fall in different blocks
+    ref_d = hamming_distance(a, b, kernel)
+    ref_m = match_descriptors(a, b, max_distance=80, mutual=True, ratio=0.95, backend="torch", kernel=kernel)
+    for name in ("_BLOCK_CPU", "_BLOCK_GEMM"):
+        monkeypatch.setattr(matching_module, name, 7 * 120)  # 7 rows per block
+    assert torch.equal(hamming_distance(a, b, kernel), ref_d)
+    m = match_descriptors(a, b, max_distance=80, mutual=True, ratio=0.95, backend="torch", kernel=kernel)
+    assert torch.equal(m.pairs, ref_m.pairs) and torch.equal(m.distances, ref_m.distances)
+    assert m.pairs.shape[0] > 10
+    assert m.pairs.tolist() == [[i, j] for i, j, _ in _np_match(a.numpy(), b.numpy(), 80, True, 0.95)]
 
 
 def _bf_nearest(a: np.ndarray, b: np.ndarray):

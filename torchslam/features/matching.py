@@ -3,7 +3,7 @@
 Three torch kernels compute the full distance matrix, batched over pairs ``(B, K1, K2)``:
 
 - ``swar``: descriptors packed to four int64 words; XOR, then a SWAR popcount (bit-sliced sums
-  in 2-, 4- and 8-bit fields, a multiply that adds the bytes into the top byte).
+  in 2-, 4-, 8- and 16-bit fields, and a multiply that adds the fields into the top bits).
 - ``lut``: XOR of the raw bytes and a 256-entry popcount table.
 - ``matmul``: bits as ±1 vectors, so ``a·b = 256 - 2 d`` and the whole matrix is one GEMM
   (``bmm``). Every product and partial sum is a small integer, exact in float16/float32.
@@ -56,6 +56,8 @@ _FAR = 1 << 20
 # on a CPU, large enough that kernel launches do not dominate on a GPU.
 _BLOCK_CPU = 1 << 19
 _BLOCK_GPU = 1 << 25
+# Elements of one float block of the GEMM kernel (64 MiB in float32).
+_BLOCK_GEMM = 1 << 24
 
 
 class HammingKernel(enum.Enum):
@@ -223,7 +225,7 @@ def _distance_blocks(d1: Tensor, d2: Tensor, kernel: HammingKernel):
     if kernel is HammingKernel.MATMUL:
         dtype = torch.float32 if dev.type == "cpu" else torch.float16
         s1, s2t = _signs(d1, dtype), _signs(d2, dtype).transpose(1, 2)
-        rows = max(1, (1 << 24) // max(1, b * k2))  # bound the float block to 64 MiB
+        rows = max(1, _BLOCK_GEMM // max(1, b * k2))
         for r0 in range(0, k1, rows):
             dot = torch.bmm(s1[:, r0 : r0 + rows], s2t)  # (B, R, K2) = 256 - 2 d, exact
             yield r0, ((_BITS - dot.float()) * 0.5).round_().to(torch.int32)
@@ -248,7 +250,8 @@ def hamming_distance(d1: Tensor, d2: Tensor, kernel: HammingKernel | str = Hammi
     Args:
         d1: (..., K1, 32) uint8 descriptors.
         d2: (..., K2, 32) uint8 descriptors with the same leading dimensions as ``d1``.
-        kernel: torch kernel; ``auto`` is ``matmul`` (fastest torch kernel on CPU and GPU).
+        kernel: torch kernel; ``auto`` is ``matmul``, the fastest torch kernel measured on the CPU
+            (``scripts/bench_matching.py``); on an accelerator it runs as a float16 GEMM.
 
     Returns:
         (..., K1, K2) int32 distances in bits, in [0, 256].

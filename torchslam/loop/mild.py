@@ -9,6 +9,9 @@ indexes hash table ``t``. A query descriptor probes the ``m`` tables with its ow
 every stored descriptor that agrees with it exactly on at least one substring is a candidate,
 and a candidate becomes a match when its full Hamming distance is within ``max_distance``.
 
+NI-SLAM's relocalisation (NI-SLAM §9.1) retrieves keyframes with DBoW2 and a vocabulary
+pretrained on another dataset; torchslam offers this vocabulary-free database for that step too.
+
 By the pigeonhole principle two descriptors less than ``m`` bits apart agree on at least one
 of ``m`` substrings, so every match closer than ``m`` bits (16 by default) is found; farther
 matches up to ``max_distance`` are found with a probability that falls with the distance (the
