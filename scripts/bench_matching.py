@@ -28,7 +28,6 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 
 from torchslam.data import TUMSequence
