@@ -1,0 +1,43 @@
+"""IMU records, IMU simulation from ground truth, and attitude streams (ground truth, simulated, AHRS)."""
+
+from .attitude import (
+    ATTITUDE_SOURCES,
+    AttitudeStream,
+    ahrs_attitude,
+    attitude_errors,
+    groundtruth_attitude,
+    integrate_gyro,
+    simulated_attitude,
+)
+from .simulate import (
+    GRAVITY_W,
+    ImuData,
+    ImuNoise,
+    Kinematics,
+    SimulatedImu,
+    interpolate_rotations,
+    kinematics_from_trajectory,
+    make_generator,
+    simulate_imu,
+    time_derivatives,
+)
+
+__all__ = [
+    "ATTITUDE_SOURCES",
+    "AttitudeStream",
+    "GRAVITY_W",
+    "ImuData",
+    "ImuNoise",
+    "Kinematics",
+    "SimulatedImu",
+    "ahrs_attitude",
+    "attitude_errors",
+    "groundtruth_attitude",
+    "integrate_gyro",
+    "interpolate_rotations",
+    "kinematics_from_trajectory",
+    "make_generator",
+    "simulate_imu",
+    "simulated_attitude",
+    "time_derivatives",
+]
