@@ -282,7 +282,8 @@ def analyze(
 
     Nested dissection: each connected part larger than ``leaf_size`` nodes is split by a
     breadth-first level set from a pseudo-peripheral node; the separator becomes a supernode
-    eliminated after both halves. Small connected parts are grouped into dense leaf supernodes.
+    eliminated after both halves. Connected parts of at most ``leaf_size`` nodes are dense leaf
+    supernodes; separate components never share one.
 
     Args:
         num_nodes: N, block rows.
@@ -330,17 +331,13 @@ def analyze(
         ncomp, labels = connected_components(sub, directed=False)
         order = np.argsort(labels, kind="stable")
         bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
-        small: list[np.ndarray] = []
-        small_count = 0
         for c in range(ncomp):
             comp = nodes[order[bounds[c]:bounds[c + 1]]]
+            # Separate components never share a supernode, so a failed factorisation of one
+            # (e.g. one problem of a batch) cannot spoil another.
             if comp.size <= leaf_size:
-                if small_count + comp.size > leaf_size and small:
-                    sn_nodes.append(np.concatenate(small))
-                    sn_parent.append(parent)
-                    small, small_count = [], 0
-                small.append(comp)
-                small_count += comp.size
+                sn_nodes.append(comp)
+                sn_parent.append(parent)
                 continue
             split = _bisect(A[comp][:, comp])
             if split is None or split[0].size >= comp.size // 2:
@@ -353,9 +350,6 @@ def analyze(
             me = len(sn_nodes) - 1
             stack.append((comp[side_a], me))
             stack.append((comp[side_b], me))
-        if small:
-            sn_nodes.append(np.concatenate(small))
-            sn_parent.append(parent)
 
     ns = len(sn_nodes)
     children: list[list[int]] = [[] for _ in range(ns)]

@@ -142,7 +142,6 @@ def levenberg_marquardt_se3(
         delta = torch.where(ok[:, None] & torch.isfinite(delta), delta, torch.zeros_like(delta))
         T_new = se3_exp(delta) @ T
         cost_new = evaluate(T_new)
-        accept = active & ok_problem & torch.isfinite(cost_new) & (cost_new <= cost)
         step = delta.detach().abs().amax(-1)
         step_p = torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, node_problem, step, "amax")
         decrease = (cost - cost_new).detach()
@@ -153,6 +152,11 @@ def levenberg_marquardt_se3(
         pred_node = -(g.detach() * dd).sum(-1) - 0.5 * (dd * H.matvec(dd).detach()).sum(-1)
         pred = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, pred_node)
         limit = config.tol * cost.detach()
+        # Close to the optimum the evaluated cost cannot resolve the step any more (its
+        # round-off exceeds the predicted gain), so a step whose predicted gain is below
+        # 1e-10 of the cost is taken on the model's word, as plain Gauss-Newton would.
+        near = ok_problem & (pred <= 1e-10 * cost.detach())
+        accept = active & ok_problem & torch.isfinite(cost_new) & ((cost_new <= cost) | near)
         done = active & (
             (accept & (decrease <= limit)) | (ok_problem & (pred <= limit)) | (step_p <= config.step_tol)
         )
