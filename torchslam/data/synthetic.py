@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Iterator
@@ -546,8 +547,10 @@ class SceneRenderer:
         camera: intrinsics and image size.
         device: where rendering runs (the scene's device if None).
         tile: screen tile size in pixels used for culling.
-        chunk: frames processed together inside :meth:`render`; bounds the working memory
-            (about 60 MB per 640 x 480 frame) so large batches do not thrash the allocator.
+        chunk: frames processed together inside :meth:`render`; bounds the scratch memory,
+            which is kept between calls (about 75 MB per 640 x 480 frame of a chunk).
+
+    Not safe to share between threads for one call; each thread gets its own scratch memory.
     """
 
     _NEAR = 1e-3  # smallest accepted depth, metres
@@ -559,7 +562,7 @@ class SceneRenderer:
         camera: PinholeCamera,
         device: torch.device | str | None = None,
         tile: int = _TILE,
-        chunk: int = 4,
+        chunk: int = 2,
     ):
         if tile < 1 or chunk < 1:
             raise ConfigError(f"tile, chunk: expected integers >= 1, got {tile} and {chunk}")
@@ -604,6 +607,8 @@ class SceneRenderer:
             dim=1,
         )  # (F, 8)
         self._channels = sc.atlas.T.contiguous()  # (3, T): one flat table per channel
+        self._lane = torch.arange(tile * tile, device=device)  # pixel index inside a tile
+        self._local = threading.local()  # per-thread scratch memory, see _render_chunk
 
     def __call__(self, T_wc: Tensor) -> RenderOutput:
         return self.render(T_wc)
@@ -664,7 +669,7 @@ class SceneRenderer:
     def _render_chunk(self, T: Tensor, rgb_out: Tensor, depth_out: Tensor, prim_out: Tensor) -> None:
         """Render frames ``T`` (b, 4, 4) into the (b, 3, H, W), (b, H, W) and (b, H, W) outputs."""
         sc, cam, S, dev = self.scene, self.camera, self.tile, self.device
-        f32 = torch.float32
+        f32, i64 = torch.float32, torch.int64
         B = T.shape[0]
         TY, TX = self.tiles_y, self.tiles_x
         NT, S2 = TY * TX, S * S
@@ -684,69 +689,119 @@ class SceneRenderer:
         overlap = self._tiles(R_wc, t_wc, side > 1e-9)  # (B, TY, TX, F)
         pb, pty, ptx, pf = overlap.nonzero(as_tuple=True)  # sorted by (frame, tile)
         P = pb.shape[0]
-        depth = torch.zeros(G * S2, dtype=f32, device=dev)
-        prim = torch.full((G * S2,), -1, dtype=torch.int64, device=dev)
-        colour = [torch.zeros(G * S2, dtype=f32, device=dev) for _ in range(3)]
-        if P > 0:
-            tile_idx = pty * TX + ptx
-            c = consts[pb, pf].T.contiguous()[:, :, None]  # (12, P, 1): one column per constant
-            ft = self._face_tex[pf].T.contiguous()[:, :, None]  # (8, P, 1)
-            rx, ry = self._rx[tile_idx], self._ry[tile_idx]  # (P, S2)
-            den = torch.addcmul(torch.addcmul(c[3], c[1], rx), c[2], ry)
-            t = (c[0] / den).clamp(-1e6, 1e6)  # ray parameter = depth (rays have unit z)
-            col = torch.addcmul(c[10], t, torch.addcmul(torch.addcmul(c[6], c[4], rx), c[5], ry))
-            row = torch.addcmul(c[11], t, torch.addcmul(torch.addcmul(c[9], c[7], rx), c[8], ry))
-            # Inside the rectangle and in front of the camera <=> every margin >= 0.
-            margin = torch.minimum(torch.minimum(col, ft[0] - col), torch.minimum(row, ft[1] - row))
-            miss = torch.minimum(margin, t - self._NEAR) < 0
-            t_hit = torch.add(t, miss.to(f32), alpha=self._MISS)
-            colc = torch.clamp(col, min=torch.zeros_like(ft[3]), max=ft[3])
-            rowc = torch.clamp(row, min=torch.zeros_like(ft[5]), max=ft[5])
-            x0 = torch.minimum(colc.floor(), ft[4])
-            y0 = torch.minimum(rowc.floor(), ft[6])
-            i00 = torch.addcmul(ft[7] + x0, y0, ft[2])
-            # Candidates of a (frame, tile) get consecutive slots; the nearest per pixel wins.
-            group = pb * NT + tile_idx
-            counts = torch.bincount(group, minlength=G)
-            slot = torch.arange(P, device=dev) - (torch.cumsum(counts, 0) - counts)[group]
-            L = int(counts.max())
-            t_buf = torch.full((L, G, S2), math.inf, dtype=f32, device=dev)
-            t_buf[slot, group] = t_hit
-            t_best = t_buf.amin(0)  # (G, S2)
-            # Slot of the nearest candidate (the lowest slot on exact ties).
-            win = torch.zeros_like(t_best)
-            for layer in range(L - 1, -1, -1):
-                win = torch.addcmul(win, (t_buf[layer] == t_best).to(f32), layer - win)
-            first = (torch.cumsum(counts, 0) - counts).to(f32)  # (G,) first pair of each group
-            pair = (first[:, None] + win).clamp_max(P - 1).long()  # (G, S2); empty groups miss below
-            flat = (pair * S2 + torch.arange(S2, device=dev)).reshape(-1)
-            i00_w, fx, fy = (x.reshape(-1).index_select(0, flat) for x in (i00, colc - x0, rowc - y0))
-            pair = pair.reshape(-1)
-            width_w = ft[2, :, 0].index_select(0, pair)
-            t_best = t_best.reshape(-1)
-            hit = t_best < 0.5 * self._MISS
-            hitf = hit.to(f32)
-            depth = torch.where(hit, t_best, torch.zeros_like(t_best))
-            prim = torch.where(hit, sc.face_prim[pf].index_select(0, pair), prim)
-            i00_l = i00_w.long()
-            i10_l = i00_l + width_w.long()
-            colour = []
-            # Bilinear texel fetch from one flat table per channel.
-            for ch in self._channels:
-                c00, c01 = ch.index_select(0, i00_l), ch.index_select(0, i00_l + 1)
-                c10, c11 = ch.index_select(0, i10_l), ch.index_select(0, i10_l + 1)
-                top = torch.addcmul(c00, c01 - c00, fx)
-                bottom = torch.addcmul(c10, c11 - c10, fx)
-                colour.append(torch.addcmul(top, bottom - top, fy) * hitf)
 
         def untile(x: Tensor) -> Tensor:
             x = x.reshape(B, TY, TX, S, S).permute(0, 1, 3, 2, 4).reshape(B, TY * S, TX * S)
             return x[:, : cam.height, : cam.width]
 
-        for ch in range(3):
-            rgb_out[:, ch] = untile(colour[ch])
-        depth_out[:] = untile(depth)
-        prim_out[:] = untile(prim)
+        if P == 0:
+            rgb_out.zero_()
+            depth_out.zero_()
+            prim_out.fill_(-1)
+            return
+        # Every large intermediate lives in a per-thread workspace reused across calls: fresh
+        # multi-megabyte allocations would be page-faulted in on every call (glibc returns them
+        # to the system), which costs more than the arithmetic.
+        ws = self._workspace()
+        tile_idx = pty * TX + ptx
+        c = consts[pb, pf].T.contiguous()[:, :, None]  # (12, P, 1): one column per constant
+        ft = self._face_tex[pf].T.contiguous()[:, :, None]  # (8, P, 1)
+        rx = torch.index_select(self._rx, 0, tile_idx, out=ws.take("rx", (P, S2), f32))  # (P, S2)
+        ry = torch.index_select(self._ry, 0, tile_idx, out=ws.take("ry", (P, S2), f32))
+        # Plane hit: t = -n.(o - c) / (n_c . ray); the ray parameter is the depth (unit z rays).
+        t = torch.mul(c[1], rx, out=ws.take("t", (P, S2), f32)).add_(c[3]).addcmul_(c[2], ry)
+        torch.div(c[0], t, out=t).clamp_(-1e6, 1e6)
+        # Texel coordinates: col = A_u + t (u_c . ray), row = A_v + t (v_c . ray).
+        col = torch.mul(c[4], rx, out=ws.take("col", (P, S2), f32)).add_(c[6]).addcmul_(c[5], ry).mul_(t).add_(c[10])
+        row = torch.mul(c[7], rx, out=ws.take("row", (P, S2), f32)).add_(c[9]).addcmul_(c[8], ry).mul_(t).add_(c[11])
+        # Inside the rectangle and in front of the camera <=> every margin >= 0.
+        m1 = torch.sub(ft[0], col, out=ws.take("m1", (P, S2), f32))
+        torch.minimum(m1, col, out=m1)
+        m2 = torch.sub(ft[1], row, out=ws.take("m2", (P, S2), f32))
+        torch.minimum(m2, row, out=m2)
+        torch.minimum(m1, m2, out=m1)
+        torch.sub(t, self._NEAR, out=m2)
+        torch.minimum(m1, m2, out=m1)
+        miss = torch.lt(m1, 0, out=ws.take("miss", (P, S2), torch.bool))
+        t_hit = m2.copy_(miss).mul_(self._MISS).add_(t)  # misses move beyond everything
+        # Bilinear sample positions, clamped to the face's texture: top-left texel and fractions.
+        col.clamp_(min=torch.zeros_like(ft[3]), max=ft[3])
+        row.clamp_(min=torch.zeros_like(ft[5]), max=ft[5])
+        x0 = torch.floor(col, out=m1)
+        torch.minimum(x0, ft[4], out=x0)
+        y0 = torch.floor(row, out=ws.take("y0", (P, S2), f32))
+        torch.minimum(y0, ft[6], out=y0)
+        fx, fy = col.sub_(x0), row.sub_(y0)
+        i00 = torch.mul(y0, ft[2], out=y0).add_(x0).add_(ft[7])  # flat texel index (exact below 2^24)
+
+        # Candidates of a (frame, tile) get consecutive slots; the nearest per pixel wins.
+        group = pb * NT + tile_idx
+        counts = torch.bincount(group, minlength=G)
+        first = torch.cumsum(counts, 0) - counts  # (G,) first pair of each group
+        slot = torch.arange(P, device=dev) - first[group]
+        L = int(counts.max())
+        t_buf = ws.take("t_buf", (L, G, S2), f32).fill_(math.inf)
+        t_buf[slot, group] = t_hit
+        t_best = torch.amin(t_buf, 0, out=ws.take("t_best", (G, S2), f32))
+        # Slot of the nearest candidate (the lowest slot on exact ties).
+        win = ws.take("win", (G, S2), f32).zero_()
+        eq = ws.take("eq", (G, S2), torch.bool)
+        step = ws.take("step", (G, S2), f32)
+        for layer in range(L - 1, -1, -1):
+            torch.eq(t_buf[layer], t_best, out=eq)
+            win.add_(torch.mul(win, -1.0, out=step).add_(layer).mul_(eq))
+        win.add_(first.to(f32)[:, None]).clamp_(max=P - 1)  # pair index; empty groups miss below
+        pair = ws.take("pair", (G * S2,), i64).copy_(win.reshape(-1))
+        flat = torch.mul(pair.view(G, S2), S2, out=ws.take("flat", (G, S2), i64)).add_(self._lane).reshape(-1)
+        i00_w = torch.index_select(i00.reshape(-1), 0, flat, out=ws.take("i00_w", (G * S2,), f32))
+        fx_w = torch.index_select(fx.reshape(-1), 0, flat, out=ws.take("fx_w", (G * S2,), f32))
+        fy_w = torch.index_select(fy.reshape(-1), 0, flat, out=ws.take("fy_w", (G * S2,), f32))
+        width_w = torch.index_select(ft[2, :, 0], 0, pair, out=ws.take("width_w", (G * S2,), f32))
+        t_best = t_best.reshape(-1).clamp_(max=self._MISS)
+        hit = torch.lt(t_best, 0.5 * self._MISS, out=ws.take("hit", (G * S2,), torch.bool))
+        hitf = ws.take("hitf", (G * S2,), f32).copy_(hit)
+        depth_out.copy_(untile(t_best.mul_(hitf)))
+        prim = torch.index_select(sc.face_prim[pf], 0, pair, out=ws.take("prim", (G * S2,), i64))
+        hit_i = ws.take("hit_i", (G * S2,), i64).copy_(hit)
+        prim_out.copy_(untile(prim.mul_(hit_i).add_(hit_i).sub_(1)))  # -1 where nothing is hit
+        i00_l = ws.take("i00_l", (G * S2,), i64).copy_(i00_w)
+        i01_l = torch.add(i00_l, 1, out=ws.take("i01_l", (G * S2,), i64))
+        i10_l = torch.add(i00_l, width_w.to(i64), out=ws.take("i10_l", (G * S2,), i64))
+        i11_l = torch.add(i10_l, 1, out=ws.take("i11_l", (G * S2,), i64))
+        c00, c01 = ws.take("c00", (G * S2,), f32), ws.take("c01", (G * S2,), f32)
+        c10, c11 = ws.take("c10", (G * S2,), f32), ws.take("c11", (G * S2,), f32)
+        # Bilinear texel fetch from one flat table per channel.
+        for k, channel in enumerate(self._channels):
+            torch.index_select(channel, 0, i00_l, out=c00)
+            torch.index_select(channel, 0, i01_l, out=c01)
+            torch.index_select(channel, 0, i10_l, out=c10)
+            torch.index_select(channel, 0, i11_l, out=c11)
+            top = c01.sub_(c00).mul_(fx_w).add_(c00)
+            bottom = c11.sub_(c10).mul_(fx_w).add_(c10)
+            rgb_out[:, k] = untile(bottom.sub_(top).mul_(fy_w).add_(top).mul_(hitf))
+
+    def _workspace(self) -> "_Workspace":
+        ws = getattr(self._local, "workspace", None)
+        if ws is None:
+            ws = self._local.workspace = _Workspace(self.device)
+        return ws
+
+
+class _Workspace:
+    """Named scratch tensors that grow to the largest size requested and are then reused."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self._store: dict[str, Tensor] = {}
+
+    def take(self, name: str, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+        """Return an uninitialised contiguous tensor of ``shape`` and ``dtype`` backed by the buffer ``name``."""
+        numel = math.prod(shape)
+        buf = self._store.get(name)
+        if buf is None or buf.dtype != dtype or buf.numel() < numel:
+            buf = torch.empty(int(numel * 1.25) + 1024, dtype=dtype, device=self.device)
+            self._store[name] = buf
+        return buf[:numel].view(shape)
 
 
 def kinect_depth_noise(
