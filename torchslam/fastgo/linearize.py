@@ -120,17 +120,21 @@ def pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> Tensor:
     return _pair_cost(T_wc, pairs, stats)
 
 
-def _pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> Tensor:
-    dt = T_wc.dtype
+def _centred(stats: PairStats, dtype: torch.dtype) -> tuple[Tensor, ...]:
+    """``(n, mean_i, mean_j, tr C_ii + tr C_jj, C_ij^T)``: the pose-independent part of the cost."""
+    st = stats.to(dtype=dtype)
+    mi, mj, C_ii, C_ij, C_jj = st.centred()
+    tr = torch.diagonal(C_ii, dim1=-2, dim2=-1).sum(-1) + torch.diagonal(C_jj, dim1=-2, dim2=-1).sum(-1)
+    return st.n, mi, mj, tr, C_ij.transpose(-1, -2)
+
+
+def _pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats, cen: tuple[Tensor, ...] | None = None) -> Tensor:
+    n, mi, mj, tr, C_ji = cen if cen is not None else _centred(stats, T_wc.dtype)
     Ti, Tj = T_wc[pairs[:, 0]], T_wc[pairs[:, 1]]
     Ri, ti, Rj, tj = Ti[:, :3, :3], Ti[:, :3, 3], Tj[:, :3, :3], Tj[:, :3, 3]
-    st = stats.to(dtype=dt)
-    mi, mj, C_ii, C_ij, C_jj = st.centred()
     d = (Ri @ mi[..., None])[..., 0] + ti - (Rj @ mj[..., None])[..., 0] - tj
-    Rji = Rj.transpose(-1, -2) @ Ri  # tr(R_i C R_j^T) = sum((R_j^T R_i) * C^T)
-    cross = (Rji * C_ij.transpose(-1, -2)).sum((-1, -2))
-    tr = torch.diagonal(C_ii, dim1=-2, dim2=-1).sum(-1) + torch.diagonal(C_jj, dim1=-2, dim2=-1).sum(-1)
-    return (st.n * (d * d).sum(-1) + tr - 2 * cross).clamp_min(0)
+    cross = ((Rj.transpose(-1, -2) @ Ri) * C_ji).sum((-1, -2))  # tr(R_i C_ij R_j^T)
+    return (n * (d * d).sum(-1) + tr - 2 * cross).clamp_min(0)
 
 
 def linearize(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> PairLinearization:

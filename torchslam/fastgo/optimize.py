@@ -35,7 +35,7 @@ from ..errors import ConfigError, ShapeError, check_float, check_shape
 from ..optim.blocksparse import SolverMethod
 from ..optim.lm import LMConfig, levenberg_marquardt_se3
 from ..optim.robust import RobustKernel, robust_weight
-from .linearize import _blocks, _pair_cost, assemble, PairLinearization
+from .linearize import PairLinearization, _blocks, _centred, _pair_cost, assemble
 from .stats import PairStats
 
 __all__ = [
@@ -74,22 +74,26 @@ class FastGOConfig:
         damping: initial Levenberg-Marquardt factor (0: start as pure Gauss-Newton).
         solver: linear solver, a :class:`~torchslam.optim.SolverMethod` or its name.
         leaf_size: supernode size of the sparse Cholesky analysis, in keyframes.
+        line_search: extend accepted steps along their direction when the cost keeps falling
+            (see :class:`~torchslam.optim.LMConfig`).
         robust: pair re-weighting kernel (:class:`~torchslam.optim.RobustKernel` or its name);
             ``l2`` turns re-weighting off.
         robust_scale: kernel scale on the per-pair RMS residual, metres.
         robust_rounds: maximum IRLS rounds (the first round is unweighted).
         robust_tol: stop re-weighting when no pair weight changes by more than this.
         min_correspondences: pairs with fewer correspondences are excluded.
-        collinear_tol: a pair is collinear when the middle eigenvalue of its centred point
-            scatter is below ``collinear_tol`` times the largest (in frame i or j).
+        collinear_tol: a pair is collinear when the second invariant of its centred point
+            scatter (``l1 l2 + l1 l3 + l2 l3`` of its eigenvalues) is below ``collinear_tol``
+            times ``trace^2``, in frame i or j (about ``l2 < collinear_tol * l1``).
     """
 
     iterations: int = 20
-    tol: float = 1e-8
+    tol: float = 1e-6
     step_tol: float = 1e-10
     damping: float = 1e-6
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 48
+    line_search: bool = True
     robust: RobustKernel | str = RobustKernel.L2
     robust_scale: float = 0.05
     robust_rounds: int = 10
@@ -111,7 +115,7 @@ class FastGOConfig:
         """The Levenberg-Marquardt settings of one round."""
         return LMConfig(
             iterations=self.iterations, tol=self.tol, step_tol=self.step_tol, damping=self.damping,
-            solver=self.solver, leaf_size=self.leaf_size,
+            solver=self.solver, leaf_size=self.leaf_size, line_search=self.line_search,
         )
 
 
@@ -257,9 +261,15 @@ def pair_status(
     safe = torch.where(finite[:, None], vec, torch.zeros_like(vec))
     safe[:, 0] = torch.where(few | ~finite, torch.ones_like(safe[:, 0]), safe[:, 0])
     _, _, C_ii, _, C_jj = PairStats.from_vector(safe, stats.count).centred()
-    ev = torch.linalg.eigvalsh(torch.cat([C_ii, C_jj]))  # ascending, (2M, 3)
-    line = ev[:, 1] <= collinear_tol * ev[:, 2].clamp_min(torch.finfo(ev.dtype).tiny)
-    line = line[: len(stats)] | line[len(stats):]
+
+    def flat(C: Tensor) -> Tensor:
+        # Points on a line leave a scatter of rank <= 1: its second invariant
+        # I2 = (tr(C)^2 - tr(C^2)) / 2 = l1 l2 + l1 l3 + l2 l3 vanishes against tr(C)^2.
+        tr = torch.diagonal(C, dim1=-2, dim2=-1).sum(-1)
+        i2 = 0.5 * (tr * tr - (C * C.transpose(-1, -2)).sum((-1, -2)))
+        return i2 <= collinear_tol * (tr * tr).clamp_min(torch.finfo(C.dtype).tiny)
+
+    line = flat(C_ii) | flat(C_jj)
     status = torch.where(line, torch.full_like(status, int(PairStatus.COLLINEAR)), status)
     status = torch.where(few, torch.full_like(status, int(PairStatus.TOO_FEW)), status)
     status = torch.where(~finite, torch.full_like(status, int(PairStatus.NONFINITE)), status)
@@ -381,14 +391,16 @@ def _run(work: _Work, config: FastGOConfig):
     for rnd in range(config.robust_rounds):
         stats = work.stats if rnd == 0 else work.stats.weighted(robust_w)
 
-        def lin(T_: Tensor, stats=stats):
+        cen = _centred(stats, T.dtype)
+
+        def lin(T_: Tensor, stats=stats, cen=cen):
             (H_ii, H_ij, H_jj), g_i, _ = _blocks(T_, pairs, stats)
-            c = _pair_cost(T_, pairs, stats)
+            c = _pair_cost(T_, pairs, stats, cen)
             H, g = assemble(PairLinearization(H_ii, H_ij, H_jj, g_i, -g_i, c), pairs, N)
             return H, g, c.new_zeros(B).index_add(0, pp, c)
 
-        def evaluate(T_: Tensor, stats=stats):
-            c = _pair_cost(T_, pairs, stats)
+        def evaluate(T_: Tensor, stats=stats, cen=cen):
+            c = _pair_cost(T_, pairs, stats, cen)
             return c.new_zeros(B).index_add(0, pp, c)
 
         if symbolic is None and lm_cfg.solver in (SolverMethod.AUTO, SolverMethod.CHOLESKY):

@@ -43,6 +43,10 @@ class LMConfig:
         damping_max: a problem whose ``lambda`` exceeds this stops, not converged.
         solver: linear solver (:class:`SolverMethod` or its name).
         leaf_size: supernode size of the sparse Cholesky analysis, in poses.
+        line_search: after an accepted step, also try the minimiser of the 1-D quadratic
+            through the cost, its exact slope and the step's cost (only step lengths > 1, up to
+            ``max_step_scale``); speeds up the slow linear phase on soft modes of large graphs.
+        max_step_scale: largest step length the line search tries.
     """
 
     iterations: int = 20
@@ -54,6 +58,8 @@ class LMConfig:
     damping_max: float = 1e8
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 48
+    line_search: bool = True
+    max_step_scale: float = 8.0
 
     def __post_init__(self) -> None:
         if self.iterations < 0:
@@ -160,6 +166,21 @@ def levenberg_marquardt_se3(
         done = active & (
             (accept & (decrease <= limit)) | (ok_problem & (pred <= limit)) | (step_p <= config.step_tol)
         )
+        if config.line_search:
+            # Floppy modes of large pose graphs are softer than the Gauss-Newton model says
+            # (residual curvature), so the step undershoots. Fit c(a) = c0 + a s + a^2 k / 2
+            # through the exact slope s = 2 g.d and c(1), and try the minimiser a* > 1.
+            slope = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, 2 * (g * delta).sum(-1))
+            kappa = 2 * (cost_new - cost - slope)
+            a_star = torch.where(kappa > 0, -slope / torch.where(kappa > 0, kappa, torch.ones_like(kappa)), torch.ones_like(kappa))
+            a_star = a_star.clamp(1.0, config.max_step_scale)
+            extend = accept & (a_star.detach() > 1.2)
+            if bool(extend.any()):
+                T_ext = se3_exp(a_star[node_problem][:, None] * delta) @ T
+                cost_ext = evaluate(T_ext)
+                better = extend & torch.isfinite(cost_ext) & (cost_ext < cost_new)
+                T_new = torch.where(better[node_problem][:, None, None], T_ext, T_new)
+                cost_new = torch.where(better, cost_ext, cost_new)
         T = torch.where(accept[node_problem][:, None, None], T_new, T)
         cost = torch.where(accept, cost_new, cost)
         lam = torch.where(accept, lam * config.damping_down, (lam * config.damping_up).clamp_min(1e-6))
