@@ -201,3 +201,13 @@ def test_weight_gradient_matches_finite_differences_at_convergence():
         e[k] = eps
         fd = (loss(w.detach() + e) - loss(w.detach() - e)) / (2 * eps)
         assert math.isclose(float(grad[k]), float(fd), rel_tol=1e-4, abs_tol=1e-10)
+
+
+def test_no_usable_pair_leaves_poses_unchanged():
+    T = se3_exp(torch.randn(3, 6, generator=torch.Generator().manual_seed(14), dtype=torch.float64))
+    pts = torch.randn(1, 2, 3, dtype=torch.float64)
+    res = optimize(T, torch.tensor([[0, 1]]), PairStats.from_padded(pts, pts))
+    assert res.pair_status.tolist() == [PairStatus.TOO_FEW] and torch.isnan(res.pair_rms).all()
+    assert torch.equal(res.T_wc, T) and res.disconnected.tolist() == [False, True, True] and res.converged
+    empty = optimize(T[:1], torch.zeros(0, 2, dtype=torch.int64), PairStats.empty(0))
+    assert torch.equal(empty.T_wc, T[:1]) and empty.converged

@@ -451,12 +451,13 @@ def optimize_batch(problems: Sequence[FastGOProblem], config: FastGOConfig | Non
     work = _prepare(problems, config)
     T, cost, iters, converged, robust_w = _run(work, config)
     widx = work.work_of_input
-    used = widx >= 0
-    safe = widx.clamp_min(0)
+    W = robust_w.shape[0]
+    # Excluded pairs read a trailing slot: weight 0, RMS NaN.
+    slot = torch.where(widx >= 0, widx, torch.full_like(widx, W))
     ok = work.status == int(PairStatus.OK)
-    pair_w = torch.where(ok, robust_w[safe], torch.zeros_like(robust_w[safe]))
+    pair_w = torch.where(ok, torch.cat([robust_w, robust_w.new_zeros(1)])[slot], robust_w.new_zeros(()))
     rms = _rms(T, work)
-    pair_rms = torch.where(used, rms[safe], torch.full_like(rms[safe], float("nan")))
+    pair_rms = torch.cat([rms, rms.new_full((1,), float("nan"))])[slot]
     return FastGOBatchResult(
         T_wc=T, cost=cost, iterations=iters, converged=converged, time_s=time.perf_counter() - start,
         pair_status=work.status, pair_weights=pair_w, pair_rms=pair_rms, disconnected=work.disconnected,
