@@ -2,8 +2,10 @@
 
 The scene is a 6 x 6 x 3 m room seen from inside, furnished with boxes along the walls (some
 stacked), flat posters on the walls, free-standing tilted panels in the corners and a rug. Every
-primitive is an oriented box (a flat panel is a box with one zero half-extent), so one slab test
-serves them all. Textures are built once per face from multi-octave value noise, hard-edged
+primitive is an oriented box (a flat panel is a box with one zero half-extent). The renderer
+intersects their faces rather than slab-testing whole boxes: for a convex box the nearest
+front-facing face hit is the slab test's entry point, and a per-face intersection yields the
+texel address with per-face constants instead of per-pixel face selection. Textures are built once per face from multi-octave value noise, hard-edged
 blobs, checkers, stripes and rectangles, shaded by a fixed light, and stored in one texel atlas;
 everything is deterministic from the seed.
 
@@ -11,13 +13,13 @@ Rendering (``SceneRenderer``) casts one ray per pixel for a batch of frames at o
 
 1. Camera rays ``((u - cx) / fx, (v - cy) / fy, 1)`` are precomputed in 16 x 16 tile order. With
    a unit z component the ray parameter at a hit *is* the depth along the optical axis.
-2. The room is intersected by every ray (its far slab distance, since the camera is inside).
-3. Each object's 8 corners are projected to get the screen tiles it can cover; only the
-   (frame, tile, object) triples that overlap are slab-tested, so the work follows the objects'
-   screen area instead of pixels x objects.
-4. Candidates are written to a padded (tile, slot, pixel) buffer and the nearest hit wins by a
-   min over slots; then the winning surface point is mapped to its face and the texel atlas is
-   sampled bilinearly.
+2. Every face is a textured rectangle. For each frame and each face whose visible side faces
+   the camera, the near-plane-clipped projection of its corners gives the screen tiles it can
+   cover; only overlapping (frame, tile, face) triples are intersected, so the work follows the
+   faces' screen area (about two candidates per pixel) instead of pixels x faces.
+3. A candidate is a ray-plane intersection tested against the rectangle, which also yields the
+   texel address; the nearest candidate per pixel wins (a min over per-tile slots), and the
+   texel atlas is sampled bilinearly at the winner's address.
 
 Depth is exact up to float32 round-off (about 1e-6 m); a Kinect-like noise model can be applied
 on top: Gaussian noise with sigma_z = k z^2, random holes and quantisation to 1 / depth_scale m.
@@ -538,9 +540,10 @@ class SceneRenderer:
     face's plane (``t = -n.(o - c) / n.d``), tests the hit against the rectangle and computes
     its texel address. All per-pixel arithmetic runs on tensors whose contiguous last dimension
     is the pixel, with per-(frame, face) constants broadcast along it (torch's element-wise
-    kernels vectorise only that way). The nearest candidate per pixel is found with one ``amin``
-    over keys that pack the depth's float bits above the candidate's slot, then the winner's
-    texel address is fetched and the atlas sampled bilinearly.
+    kernels vectorise only that way; ``torch.where`` and reductions over a middle dimension are
+    avoided for the same reason). Candidates of a tile are written to slots of a (slot, tile,
+    pixel) depth buffer; a min over slots picks the nearest, its slot is recovered by equality,
+    and the winner's texel address is gathered and the atlas sampled bilinearly.
 
     Args:
         scene: the primitives and textures.
