@@ -278,6 +278,10 @@ def test_kinect_noise_statistics():
     assert (steps - steps.round()).abs().max() < 1e-2  # quantised to 1/5000 m
     clean = kinect_depth_noise(z, k=0.0, holes=0.0, depth_scale=0.0, generator=g)
     assert torch.equal(clean, z)
+    with pytest.raises(ConfigError, match="holes"):
+        kinect_depth_noise(z, holes=1.0)
+    with pytest.raises(ConfigError, match="k:"):
+        kinect_depth_noise(z, k=-1.0)
 
 
 def test_rendered_noise_grows_with_depth_squared():

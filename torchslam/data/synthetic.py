@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, check_shape
+from ..errors import ConfigError, check_float, check_shape
 from ..geometry import PinholeCamera, se3_from_Rt, so3_exp, vex
 from ..imu import AttitudeStream, ImuData, ImuNoise, Kinematics, ahrs_attitude, simulate_imu, time_derivatives
 from .frame import Frame
@@ -831,6 +831,13 @@ def kinect_depth_noise(
     Returns:
         Noisy depth, same shape, dtype and device.
     """
+    check_float(depth, "depth")
+    if not (math.isfinite(k) and k >= 0):
+        raise ConfigError(f"k: expected a noise coefficient >= 0 in 1/m, got {k!r}")
+    if not 0 <= holes < 1:
+        raise ConfigError(f"holes: expected a fraction in [0, 1), got {holes!r}")
+    if not (math.isfinite(depth_scale) and depth_scale >= 0):
+        raise ConfigError(f"depth_scale: expected steps per metre >= 0 (0: none), got {depth_scale!r}")
     valid = depth > 0
     n = torch.randn(depth.shape, generator=generator, dtype=depth.dtype, device=depth.device)
     drop = torch.rand(depth.shape, generator=generator, dtype=depth.dtype, device=depth.device) < holes
@@ -1034,7 +1041,8 @@ class SyntheticSequence:
             rgb, depth = self.render(range(start, min(start + bs, n)))
             self._cached = (start, rgb, depth)
         _, rgb, depth = self._cached
-        return self._frame(i, rgb[i - start], depth[i - start])
+        # Copies, so a consumer writing into its frame cannot alter the cached batch.
+        return self._frame(i, rgb[i - start].clone(), depth[i - start].clone())
 
     def __iter__(self) -> Iterator[Frame]:
         bs = self.cfg.batch_size
