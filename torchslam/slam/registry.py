@@ -25,14 +25,12 @@ class SystemSpec:
         description: one line for help texts.
         config_cls: the system's frozen config dataclass (defaults in code).
         build: ``build(config, device, monitor) -> SlamSystem``.
-        default_config: path of the YAML defaults under ``configs/``, relative to the repo.
     """
 
     name: str
     description: str
     config_cls: type
     build: Callable[..., Any]
-    default_config: str | None = None
 
 
 # name -> (module, attribute holding its SystemSpec, what it is)

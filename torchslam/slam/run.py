@@ -1,0 +1,155 @@
+"""Run one system on one sequence and write its run folder: the library behind ``torchslam run``."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import yaml
+
+from ..config import config_from_dict, config_to_dict, parse_overrides
+from ..data.frame import Frame, Sequence
+from ..data.synthetic import SyntheticConfig, generate_sequence
+from ..data.tum import TUMSequence
+from ..errors import ConfigError
+from .base import run_sequence
+from .monitor import Monitor, TensorBoardMonitor
+from .outputs import write_run
+from .registry import get_system
+
+__all__ = ["DataConfig", "RunOptions", "load_sequence", "resolve_config", "run"]
+
+logger = logging.getLogger(__name__)
+
+SYNTHETIC = "synthetic"
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """How a sequence is read: the ``data:`` section of a run config.
+
+    Attributes:
+        stride: use every ``stride``-th frame.
+        start: first frame (after association).
+        end: one past the last frame, or None for all.
+        max_gap: largest colour/depth timestamp gap accepted when associating, seconds.
+        prefetch: frames decoded ahead in a background thread (0 = decode inline).
+        synthetic: the generator's settings when ``--data synthetic``.
+    """
+
+    stride: int = 1
+    start: int = 0
+    end: int | None = None
+    max_gap: float = 0.02
+    prefetch: int = 2
+    synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Everything about a run that is not the system's own config."""
+
+    system: str
+    data: str
+    out: Path
+    device: str = "cpu"
+    tensorboard: bool = True
+    max_frames: int | None = None
+
+
+def resolve_config(system: str, config_path: str | os.PathLike | None, overrides: Iterable[str]) -> tuple[Any, DataConfig, dict[str, Any]]:
+    """Merge the system's defaults, its YAML file and ``--set`` overrides.
+
+    The YAML file holds the system's keys at the top level and an optional ``data:`` section;
+    ``--set data.stride=2`` and ``--set sigma=0.3`` address the two parts.
+
+    Returns:
+        (system config, data config, the resolved config as plain data for ``config.yaml``).
+    """
+    spec = get_system(system)
+    layers: list[tuple[str, dict[str, Any]]] = []
+    if config_path is not None:
+        path = Path(config_path)
+        try:
+            loaded = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read config ({exc.strerror or exc})") from exc
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+            raise ConfigError(f"{path}{loc}: malformed YAML ({getattr(exc, 'problem', exc)})") from exc
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
+        layers.append((str(path), dict(loaded or {})))
+    layers.append(("--set", parse_overrides(list(overrides))))
+    system_data: dict[str, Any] = {}
+    data_data: dict[str, Any] = {}
+    for source, layer in layers:
+        layer = dict(layer)
+        layer.pop("system", None)
+        d = layer.pop("data", None) or {}
+        # Validate each layer on its own so an error names the file or --set it came from.
+        config_from_dict(spec.config_cls, {**system_data, **layer}, source=source)
+        config_from_dict(DataConfig, _merge(data_data, d), source=f"{source} (data)")
+        system_data.update(layer)
+        data_data = _merge(data_data, d)
+    system_cfg = config_from_dict(spec.config_cls, system_data)
+    data_cfg = config_from_dict(DataConfig, data_data)
+    resolved = {"system": system, **config_to_dict(system_cfg), "data": config_to_dict(data_cfg)}
+    return system_cfg, data_cfg, resolved
+
+
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_sequence(data: str, cfg: DataConfig) -> Sequence:
+    """Open ``data``: a TUM-layout folder, or ``synthetic`` for the built-in generated sequence."""
+    if data == SYNTHETIC:
+        return generate_sequence(cfg.synthetic)
+    return TUMSequence(data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch)
+
+
+def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:
+    """``logs/<system>-<data name>-<YYYYmmdd-HHMMSS>``."""
+    name = SYNTHETIC if data == SYNTHETIC else Path(data).resolve().name
+    return Path(root) / f"{system}-{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def run(
+    options: RunOptions,
+    config_path: str | os.PathLike | None = None,
+    overrides: Iterable[str] = (),
+    progress: Callable[[Iterable[Frame]], Iterable[Frame]] | None = None,
+) -> dict[str, Any]:
+    """Run ``options.system`` on ``options.data`` and write the run folder ``options.out``.
+
+    Returns:
+        The metrics written to ``metrics.json``.
+    """
+    spec = get_system(options.system)
+    system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
+    sequence = load_sequence(options.data, data_cfg)
+    out = Path(options.out)
+    out.mkdir(parents=True, exist_ok=True)
+    monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
+    try:
+        system = spec.build(system_cfg, device=options.device, monitor=monitor)
+        result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames)
+        resolved["device"] = options.device
+        metrics = write_run(out, options.system, result, sequence, config=resolved, extra={"device": options.device, "data": options.data})
+        monitor.hparams(
+            {k: v for k, v in resolved.items() if not isinstance(v, dict)},
+            {k: v for k, v in metrics.items() if k in ("ate_rmse_m", "fps_end_to_end", "keyframes") and v is not None},
+        )
+    finally:
+        monitor.close()
+    return metrics
+
