@@ -68,3 +68,14 @@ def test_python_dash_m_is_the_same_entry_point():
     assert proc.returncode == 0
     for cmd in ("run", "eval", "info", "synth"):
         assert cmd in proc.stdout
+
+
+def test_synth_writes_a_folder_that_info_and_run_read(tmp_path, capsys):
+    out = tmp_path / "seq"
+    assert main(["synth", "--out", str(out), "--frames", "4", "--width", "160", "--height", "120", "--trajectory", "translate"]) == 0
+    assert "wrote 4 frames" in capsys.readouterr().out
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["frames"] == 4 and info["intrinsics_source"].startswith("calibration.txt")
+    assert main(["synth", "--out", str(tmp_path / "x"), "--trajectory", "spiral"]) == 2
+    assert "trajectory" in capsys.readouterr().err

@@ -1,0 +1,85 @@
+"""The run folder that `torchslam run` writes, Ctrl-C handling and run-level errors."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from torchslam.cli import main
+from torchslam.config import config_from_dict
+from torchslam.data import read_tum_trajectory
+from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+from torchslam.slam import run_sequence
+from torchslam.slam.nislam import NISlam, NISlamConfig
+from torchslam.slam.outputs import METRIC_KEYS, write_run
+
+SMALL = ["--set", "data.synthetic.frames=12", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_run_writes_the_complete_run_folder(tmp_path, capsys):
+    out = tmp_path / "run"
+    rc = main(["run", "--system", "nislam", "--data", "synthetic", "--out", str(out), "--no-progress",
+               "--set", "kcc.ortho_height=90", "--set", "kcc.ortho_width=120", "--set", "min_valid_points=100", *SMALL])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "ATE RMSE" in printed and "frames/s" in printed
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in METRIC_KEYS:
+        assert key in metrics, key
+    assert metrics["system"] == "nislam" and metrics["frames"] == 12
+    assert metrics["attitude_source"] == "imu" and metrics["ate_rmse_m"] is not None
+    traj = read_tum_trajectory(out / "trajectory.txt")
+    assert len(traj) == metrics["tracked_frames"] == 12
+    assert len(read_tum_trajectory(out / "keyframes.txt")) == metrics["keyframes"] >= 1
+    assert (out / "map.ply").read_bytes().startswith(b"ply\nformat binary_little_endian 1.0\n")
+    resolved = yaml.safe_load((out / "config.yaml").read_text())
+    assert resolved["system"] == "nislam" and resolved["kcc"]["ortho_height"] == 90
+    assert resolved["data"]["synthetic"]["frames"] == 12
+    assert list(out.glob("events.out.tfevents.*")), "tensorboard events missing"
+
+
+def test_ctrl_c_keeps_what_was_computed(tmp_path):
+    seq = generate_sequence(SyntheticConfig(frames=10, width=160, height=120, trajectory="translate"))
+
+    class Interrupting:
+        def __init__(self, seq):
+            self.seq = seq
+            self.name, self.camera, self.timestamps = seq.name, seq.camera, seq.timestamps
+            self.groundtruth, self.attitude = seq.groundtruth, seq.attitude
+
+        def __len__(self):
+            return len(self.seq)
+
+        def __iter__(self):
+            for f in self.seq:
+                if f.index == 6:
+                    raise KeyboardInterrupt
+                yield f
+
+    cfg = config_from_dict(NISlamConfig, {"min_valid_points": 100, "kcc": {"ortho_height": 90, "ortho_width": 120}})
+    seq_i = Interrupting(seq)
+    result = run_sequence(NISlam(cfg), seq_i)
+    assert result.interrupted and result.frames_processed == 6
+    metrics = write_run(tmp_path, "nislam", result, seq_i)
+    assert metrics["interrupted"] is True and metrics["tracked_frames"] == 6
+    assert len(read_tum_trajectory(tmp_path / "trajectory.txt")) == 6
+
+
+def test_run_errors_name_the_argument(tmp_path, capsys):
+    assert main(["run", "--data", "synthetic", "--out", str(tmp_path / "a"), "--set", "kcc.sigmaa=1"]) == 2
+    assert "kcc.sigmaa: unknown key" in capsys.readouterr().err
+    assert main(["run", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "b")]) == 2
+    assert "missing" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("kcc: [1, 2\n")
+    assert main(["run", "--config", str(bad), "--out", str(tmp_path / "c")]) == 2
+    assert "bad.yaml:" in capsys.readouterr().err
