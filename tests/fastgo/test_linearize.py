@@ -85,3 +85,23 @@ def test_float32_inputs_and_bad_shapes():
         linearize(T, pairs.int(), st)
     with pytest.raises(ShapeError, match="T_wc"):
         linearize(T[:, :3], pairs, st)
+
+
+def test_residual_curvature_completes_the_exact_hessian():
+    # Hessian of c(delta) = cost(exp(delta) T) by autograd equals 2 (J^T J + S) at delta = 0.
+    from torchslam.fastgo import residual_curvature
+    from torchslam.optim import BlockSparseMatrix
+
+    T, pairs, pi, pj, w = random_problem(6, n_nodes=4, n_pairs=7)
+    st = PairStats.from_correspondences(pi, pj, w)
+    H, _ = assemble(linearize(T, pairs, st), pairs, 4)
+    S_i, S_j = residual_curvature(T, pairs, st)
+    diag = H.diag.index_add(0, pairs[:, 0], S_i).index_add(0, pairs[:, 1], S_j)
+    exact = BlockSparseMatrix(diag, H.off, H.rows, H.cols).to_dense()
+
+    def c(d):
+        return pair_cost(se3_exp(d.reshape(4, 6)) @ T, pairs, st).sum()
+
+    hess = torch.autograd.functional.hessian(c, torch.zeros(24, dtype=torch.float64))
+    assert torch.allclose(hess, 2 * exact, atol=1e-9 * hess.abs().max())
+    assert not torch.allclose(hess, 2 * H.to_dense(), atol=1e-3 * hess.abs().max())

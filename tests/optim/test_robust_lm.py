@@ -78,3 +78,18 @@ def test_lm_recovers_targets_per_problem():
     fixed[1] = True
     res3 = levenberg_marquardt_se3(T0, torch.arange(5), 5, lin, ev, fixed, LMConfig(iterations=30))
     assert torch.equal(res3.T[1], T0[1])
+
+
+def test_indefinite_exact_hessian_falls_back_to_gauss_newton():
+    g = torch.Generator().manual_seed(1)
+    targets = se3_exp(torch.randn(3, 6, generator=g, dtype=torch.float64))
+    T0 = se3_exp(0.2 * torch.randn(3, 6, generator=g, dtype=torch.float64)) @ targets
+    lin, ev = _prior_problem(targets)
+
+    def lin_bad(T):  # a curvature term that makes H + S indefinite everywhere
+        H, gr, c = lin(T)
+        return H, gr, c, -10 * H.diag
+
+    res = levenberg_marquardt_se3(T0, torch.arange(3), 3, lin_bad, ev, torch.zeros(3, dtype=torch.bool), LMConfig(iterations=30))
+    assert res.converged.all() and torch.isfinite(res.T).all()
+    assert se3_log(se3_inverse(res.T) @ targets).abs().max() < 1e-9

@@ -33,7 +33,7 @@ from ..geometry.lie import _skew, _vex
 from ..optim.blocksparse import BlockSparseMatrix
 from .stats import PairStats
 
-__all__ = ["PairLinearization", "linearize", "pair_cost", "assemble", "reference_linearize"]
+__all__ = ["PairLinearization", "linearize", "pair_cost", "assemble", "residual_curvature", "reference_linearize"]
 
 
 @dataclass(frozen=True)
@@ -65,44 +65,47 @@ def _check_inputs(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> None:
         raise ShapeError(f"pairs: expected int64 keyframe indices, got {pairs.dtype}")
 
 
-def _blocks(T_wc: Tensor, pairs: Tensor, stats: PairStats, with_hessian: bool = True):
+def _blocks(T_wc: Tensor, pairs: Tensor, stats: PairStats, with_curvature: bool = False):
+    """Per-pair blocks; the three moments and both poses are stacked so each step is one op."""
     dt = T_wc.dtype
-    Ti, Tj = T_wc[pairs[:, 0]], T_wc[pairs[:, 1]]
-    Ri, ti, Rj, tj = Ti[:, :3, :3], Ti[:, :3, 3], Tj[:, :3, :3], Tj[:, :3, 3]
+    M = pairs.shape[0]
+    T2 = T_wc[pairs.reshape(-1)].reshape(M, 2, 4, 4)
+    R, t = T2[..., :3, :3], T2[..., :3, 3]  # (M, 2, 3, 3), (M, 2, 3): poses i and j
     n = stats.n.to(dt)
-    s_i, s_j = stats.s_i.to(dt), stats.s_j.to(dt)
-    a_i = (Ri @ s_i[..., None])[..., 0]  # (M, 3) R_i s_i
-    a_j = (Rj @ s_j[..., None])[..., 0]
-    Q_i = a_i + n[:, None] * ti
-    Q_j = a_j + n[:, None] * tj
-    RiSij = Ri @ stats.S_ij.to(dt)
-
-    def moment(RS: Tensor, Rb: Tensor, a: Tensor, tb: Tensor, ta: Tensor, ab: Tensor) -> Tensor:
-        return RS @ Rb.transpose(-1, -2) + a[:, :, None] * tb[:, None, :] + ta[:, :, None] * ab[:, None, :] \
-            + n[:, None, None] * ta[:, :, None] * tb[:, None, :]
-
-    M_ij = moment(RiSij, Rj, a_i, tj, ti, a_j)
+    a = (R @ torch.stack([stats.s_i, stats.s_j], 1).to(dt)[..., None])[..., 0]  # (M, 2, 3) R s
+    Q = a + n[:, None, None] * t  # (M, 2, 3): Q_i, Q_j
+    first, second = [0, 0, 1], [0, 1, 1]  # moments (i, i), (i, j), (j, j)
+    S = torch.stack([stats.S_ii, stats.S_ij, stats.S_jj], 1).to(dt)  # (M, 3, 3, 3)
+    # M_ab = R_a S_ab R_b^T + Q_a t_b^T + t_a (R_b s_b)^T   (Q_a = R_a s_a + n t_a)
+    Mom = R[:, first] @ S @ R[:, second].transpose(-1, -2) \
+        + Q[:, first, :, None] * t[:, second, None, :] + t[:, first, :, None] * a[:, second, None, :]
+    M_ij = Mom[:, 1]
     g_rot = -_vex(M_ij.transpose(-1, -2) - M_ij)  # M^T - M is skew, so _vex is exact here
-    g_i = torch.cat([Q_i - Q_j, g_rot], dim=-1)
-    if not with_hessian:
-        return None, g_i, M_ij
-    M_ii = moment(Ri @ stats.S_ii.to(dt), Ri, a_i, ti, ti, a_i)
-    M_jj = moment(Rj @ stats.S_jj.to(dt), Rj, a_j, tj, tj, a_j)
+    g_i = torch.cat([Q[:, 0] - Q[:, 1], g_rot], dim=-1)
     eye = torch.eye(3, dtype=dt, device=T_wc.device)
-    nI = n[:, None, None] * eye
-
-    def K(M: Tensor) -> Tensor:
-        return M.transpose(-1, -2) - torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye
-
-    Wi, Wj = _skew(Q_i), _skew(Q_j)
-
-    def block(tl: Tensor, tr: Tensor, bl: Tensor, br: Tensor) -> Tensor:
-        return torch.cat([torch.cat([tl, tr], -1), torch.cat([bl, br], -1)], -2)
-
-    H_ii = block(nI, -Wi, Wi, -K(M_ii))
-    H_jj = block(nI, -Wj, Wj, -K(M_jj))
-    H_ij = -block(nI, -Wj, Wi, -K(M_ij))
-    return (H_ii, H_ij, H_jj), g_i, M_ij
+    trace = torch.diagonal(Mom, dim1=-2, dim2=-1).sum(-1)[..., None, None]
+    W = _skew(Q)  # (M, 2, 3, 3)
+    H = T_wc.new_empty(M, 3, 6, 6)
+    H[..., :3, :3] = n[:, None, None, None] * eye
+    H[..., :3, 3:] = -W[:, second]
+    H[..., 3:, :3] = W[:, first]
+    H[..., 3:, 3:] = trace * eye - Mom.transpose(-1, -2)  # -K(M) = -(M^T - tr(M) I)
+    H = H * torch.tensor([1.0, -1.0, 1.0], dtype=dt, device=T_wc.device)[:, None, None]
+    blocks = (H[:, 0], H[:, 1], H[:, 2])
+    if not with_curvature:
+        return blocks, g_i, M_ij
+    # Residual curvature of the left perturbation: exp(d) q = q + d^q + d^d^q / 2 + ..., with
+    # d^d^q = phi x (phi x q) + phi x rho, so sum_k r_k . d^d^q_k is the quadratic form of
+    # [[0, [R]x / 2], [-[R]x / 2, sym(A) - tr(A) I]] with A = sum r q^T, R = sum r. Only
+    # poses i and j themselves are involved (no coupling block); pose j enters with -r.
+    A = torch.stack([Mom[:, 0] - M_ij.transpose(-1, -2), Mom[:, 2] - M_ij], 1)  # (M, 2, 3, 3)
+    r_sum = Q[:, 0] - Q[:, 1]
+    half = 0.5 * _skew(torch.stack([r_sum, -r_sum], 1))
+    Sc = T_wc.new_zeros(M, 2, 6, 6)
+    Sc[..., :3, 3:] = half
+    Sc[..., 3:, :3] = -half
+    Sc[..., 3:, 3:] = 0.5 * (A + A.transpose(-1, -2)) - torch.diagonal(A, dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye
+    return blocks, g_i, M_ij, (Sc[:, 0], Sc[:, 1])
 
 
 def pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> Tensor:
@@ -151,6 +154,25 @@ def linearize(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> PairLinearizatio
     _check_inputs(T_wc, pairs, stats)
     (H_ii, H_ij, H_jj), g_i, _ = _blocks(T_wc, pairs, stats)
     return PairLinearization(H_ii, H_ij, H_jj, g_i, -g_i, _pair_cost(T_wc, pairs, stats))
+
+
+def residual_curvature(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> tuple[Tensor, Tensor]:
+    """Second-order residual terms of each pair, from the statistics (O(M)).
+
+    The exact Hessian of the cost ``c(delta) = sum |exp(d_i) q_i - exp(d_j) q_j|^2`` at
+    ``delta = 0`` is ``2 (J^T J + S)``; Gauss-Newton drops ``S``. It only touches the diagonal
+    blocks of poses i and j.
+
+    Args:
+        T_wc: (N, 4, 4) keyframe poses.
+        pairs: (M, 2) int64 keyframe indices.
+        stats: statistics of the M pairs.
+
+    Returns:
+        ``(S_i, S_j)``, each (M, 6, 6) symmetric.
+    """
+    _check_inputs(T_wc, pairs, stats)
+    return _blocks(T_wc, pairs, stats, with_curvature=True)[3]
 
 
 def assemble(lin: PairLinearization, pairs: Tensor, num_nodes: int) -> tuple[BlockSparseMatrix, Tensor]:

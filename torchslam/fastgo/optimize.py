@@ -76,6 +76,10 @@ class FastGOConfig:
         leaf_size: supernode size of the sparse Cholesky analysis, in keyframes.
         line_search: extend accepted steps along their direction when the cost keeps falling
             (see :class:`~torchslam.optim.LMConfig`).
+        newton: near the optimum, add the residual curvature of the exponential map (also
+            O(#pairs) from the statistics, :func:`~torchslam.fastgo.residual_curvature`) to
+            ``J^T J``: Newton instead of Gauss-Newton steps, which removes the slow linear tail
+            on soft modes of large graphs with noisy correspondences.
         robust: pair re-weighting kernel (:class:`~torchslam.optim.RobustKernel` or its name);
             ``l2`` turns re-weighting off.
         robust_scale: kernel scale on the per-pair RMS residual, metres.
@@ -94,6 +98,7 @@ class FastGOConfig:
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 48
     line_search: bool = True
+    newton: bool = True
     robust: RobustKernel | str = RobustKernel.L2
     robust_scale: float = 0.05
     robust_rounds: int = 10
@@ -115,7 +120,7 @@ class FastGOConfig:
         """The Levenberg-Marquardt settings of one round."""
         return LMConfig(
             iterations=self.iterations, tol=self.tol, step_tol=self.step_tol, damping=self.damping,
-            solver=self.solver, leaf_size=self.leaf_size, line_search=self.line_search,
+            solver=self.solver, leaf_size=self.leaf_size, line_search=self.line_search, newton=self.newton,
         )
 
 
@@ -394,10 +399,16 @@ def _run(work: _Work, config: FastGOConfig):
         cen = _centred(stats, T.dtype)
 
         def lin(T_: Tensor, stats=stats, cen=cen):
-            (H_ii, H_ij, H_jj), g_i, _ = _blocks(T_, pairs, stats)
+            out = _blocks(T_, pairs, stats, with_curvature=config.newton)
+            (H_ii, H_ij, H_jj), g_i = out[0], out[1]
             c = _pair_cost(T_, pairs, stats, cen)
             H, g = assemble(PairLinearization(H_ii, H_ij, H_jj, g_i, -g_i, c), pairs, N)
-            return H, g, c.new_zeros(B).index_add(0, pp, c)
+            cost = c.new_zeros(B).index_add(0, pp, c)
+            if not config.newton:
+                return H, g, cost
+            S_i, S_j = out[3]
+            S = S_i.new_zeros(N, 6, 6).index_add(0, pairs[:, 0], S_i).index_add(0, pairs[:, 1], S_j)
+            return H, g, cost, S
 
         def evaluate(T_: Tensor, stats=stats, cen=cen):
             c = _pair_cost(T_, pairs, stats, cen)

@@ -230,10 +230,11 @@ class BlockCholeskySymbolic:
 def _adjacency(n: int, rows: np.ndarray, cols: np.ndarray):
     import scipy.sparse as sp
 
-    data = np.ones(2 * rows.size, dtype=np.int8)
-    A = sp.csr_matrix((data, (np.concatenate([rows, cols]), np.concatenate([cols, rows]))), shape=(n, n))
+    # float64 data and int32 indices are what scipy's graph routines want: no conversions later
+    data = np.ones(2 * rows.size, dtype=np.float64)
+    A = sp.csr_matrix((data, (np.concatenate([rows, cols]).astype(np.int32), np.concatenate([cols, rows]).astype(np.int32))), shape=(n, n))
     A.sum_duplicates()
-    A.data[:] = 1
+    A.data[:] = 1.0
     return A
 
 
@@ -262,7 +263,7 @@ def _bisect(A_sub) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     lev = int(cand[np.lexsort((np.abs(cand - mid), counts[cand]))[0]])
     in_lev = dist == lev
     # Keep in the separator only level nodes that touch the next level; the rest join side A.
-    nxt = (dist == lev + 1).astype(np.int8)
+    nxt = (dist == lev + 1).astype(np.float64)
     touches = (A_sub @ nxt) > 0
     sep = in_lev & touches
     side_a = (dist < lev) | (in_lev & ~touches)
@@ -339,7 +340,7 @@ def analyze(
                 sn_nodes.append(comp)
                 sn_parent.append(parent)
                 continue
-            split = _bisect(A[comp][:, comp])
+            split = _bisect(sub if ncomp == 1 else A[comp][:, comp])
             if split is None or split[0].size >= comp.size // 2:
                 sn_nodes.append(comp)  # dense-ish part: no useful separator
                 sn_parent.append(parent)

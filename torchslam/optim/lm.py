@@ -27,6 +27,10 @@ from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, SolverMethod,
 __all__ = ["LMConfig", "LMResult", "levenberg_marquardt_se3"]
 
 
+def _unpack(out: tuple) -> tuple:
+    return (out[0], out[1], out[2], out[3] if len(out) > 3 else None)
+
+
 @dataclass(frozen=True)
 class LMConfig:
     """Levenberg-Marquardt settings.
@@ -47,6 +51,12 @@ class LMConfig:
             through the cost, its exact slope and the step's cost (only step lengths > 1, up to
             ``max_step_scale``); speeds up the slow linear phase on soft modes of large graphs.
         max_step_scale: largest step length the line search tries.
+        newton: when ``linearize`` also returns residual-curvature blocks ``S``, use the exact
+            Hessian ``H + S`` once a problem is near its optimum; Gauss-Newton converges only
+            linearly there when residuals are not small. A factorisation that is not positive
+            definite falls back to ``H`` in the same iteration.
+        newton_switch: a problem switches to the exact Hessian after an accepted step that
+            lowered its cost by less than this fraction.
     """
 
     iterations: int = 20
@@ -60,6 +70,8 @@ class LMConfig:
     leaf_size: int = 48
     line_search: bool = True
     max_step_scale: float = 8.0
+    newton: bool = True
+    newton_switch: float = 0.5
 
     def __post_init__(self) -> None:
         if self.iterations < 0:
@@ -108,8 +120,10 @@ def levenberg_marquardt_se3(
         T: (N, 4, 4) initial poses of all problems, concatenated.
         node_problem: (N,) int64 problem index of each pose, in ``[0, B)``.
         num_problems: B.
-        linearize: ``T -> (H, g, cost)`` with ``H`` a :class:`BlockSparseMatrix` over the N poses
-            (same pattern every call), ``g`` (N, 6) and ``cost`` (B,).
+        linearize: ``T -> (H, g, cost)`` or ``(H, g, cost, S)`` with ``H`` a
+            :class:`BlockSparseMatrix` over the N poses (same pattern every call), ``g`` (N, 6),
+            ``cost`` (B,) and optional ``S`` (N, 6, 6) residual-curvature diagonal blocks (the
+            exact Hessian is ``H + S``).
         evaluate: ``T -> cost`` (B,), the same cost without the linearisation.
         fixed: (N,) bool mask of poses held constant (gauges).
         config: iteration and damping settings.
@@ -126,7 +140,7 @@ def levenberg_marquardt_se3(
     check_shape(fixed, "N", "fixed", dims)
     B = num_problems
     dev, dt = T.device, T.dtype
-    H, g, cost = linearize(T)
+    H, g, cost, S = _unpack(linearize(T))
     if symbolic is None and config.solver in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
         symbolic = analyze(H.num_nodes, H.rows, H.cols, fixed, H.block_size, config.leaf_size)
     lam = torch.full((B,), config.damping, dtype=dt, device=dev)
@@ -134,6 +148,7 @@ def levenberg_marquardt_se3(
     converged = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.int64, device=dev)
     history = [cost.detach()]
+    newton_ready = torch.zeros(B, dtype=torch.bool, device=dev)
     for _ in range(config.iterations):
         if not bool(active.any()):
             break
@@ -142,10 +157,22 @@ def levenberg_marquardt_se3(
         # receives some damping.
         damp = lam[node_problem][:, None] * (d + 1e-9 * d.mean(-1, keepdim=True))
         rhs = -g * active[node_problem][:, None].to(dt)
-        delta, ok = solve_block_sparse(H.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic)
-        bad_node = (~ok | ~torch.isfinite(delta).all(-1)).to(dt)
-        ok_problem = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, bad_node) == 0
-        delta = torch.where(ok[:, None] & torch.isfinite(delta), delta, torch.zeros_like(delta))
+        use_newton = newton_ready & active if (config.newton and S is not None) else torch.zeros_like(active)
+        model = H
+        for attempt in range(2):
+            if bool(use_newton.any()):
+                model = BlockSparseMatrix(H.diag + S * use_newton[node_problem][:, None, None].to(dt), H.off, H.rows, H.cols)
+            else:
+                model = H
+            delta, ok = solve_block_sparse(model.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic)
+            bad_node = (~ok | ~torch.isfinite(delta).all(-1)).to(dt)
+            ok_problem = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, bad_node) == 0
+            failed = use_newton & ~ok_problem
+            if attempt == 1 or not bool(failed.any()):
+                break
+            # The exact Hessian is indefinite here: Gauss-Newton for those problems this time.
+            use_newton = use_newton & ~failed
+            newton_ready = newton_ready & ~failed
         T_new = se3_exp(delta) @ T
         cost_new = evaluate(T_new)
         step = delta.detach().abs().amax(-1)
@@ -155,7 +182,7 @@ def levenberg_marquardt_se3(
         # below the tolerance there is nothing left to gain, whatever round-off does to the
         # evaluated cost (noise-free problems sit at a round-off floor).
         dd = delta.detach()
-        pred_node = -(g.detach() * dd).sum(-1) - 0.5 * (dd * H.matvec(dd).detach()).sum(-1)
+        pred_node = -(g.detach() * dd).sum(-1) - 0.5 * (dd * model.matvec(dd).detach()).sum(-1)
         pred = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, pred_node)
         limit = config.tol * cost.detach()
         # Close to the optimum the evaluated cost cannot resolve the step any more (its
@@ -182,6 +209,8 @@ def levenberg_marquardt_se3(
                 T_new = torch.where(better[node_problem][:, None, None], T_ext, T_new)
                 cost_new = torch.where(better, cost_ext, cost_new)
         T = torch.where(accept[node_problem][:, None, None], T_new, T)
+        rel = (cost.detach() - cost_new.detach()) / cost.detach().clamp_min(torch.finfo(dt).tiny)
+        newton_ready = torch.where(accept, rel < config.newton_switch, newton_ready)
         cost = torch.where(accept, cost_new, cost)
         lam = torch.where(accept, lam * config.damping_down, (lam * config.damping_up).clamp_min(1e-6))
         iters = iters + active.to(torch.int64)
@@ -189,6 +218,6 @@ def levenberg_marquardt_se3(
         active = active & ~done & (lam <= config.damping_max)
         history.append(cost.detach())
         if bool((accept & active).any()):
-            H, g, _ = linearize(T)
+            H, g, _, S = _unpack(linearize(T))
     cost_hist = torch.stack(history, dim=1)
     return LMResult(T, cost_hist, iters, converged, time.perf_counter() - start)
