@@ -66,46 +66,54 @@ def _check_inputs(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> None:
 
 
 def _blocks(T_wc: Tensor, pairs: Tensor, stats: PairStats, with_curvature: bool = False):
-    """Per-pair blocks; the three moments and both poses are stacked so each step is one op."""
     dt = T_wc.dtype
-    M = pairs.shape[0]
-    T2 = T_wc[pairs.reshape(-1)].reshape(M, 2, 4, 4)
-    R, t = T2[..., :3, :3], T2[..., :3, 3]  # (M, 2, 3, 3), (M, 2, 3): poses i and j
+    Ti, Tj = T_wc[pairs[:, 0]], T_wc[pairs[:, 1]]
+    Ri, ti, Rj, tj = Ti[:, :3, :3], Ti[:, :3, 3], Tj[:, :3, :3], Tj[:, :3, 3]
     n = stats.n.to(dt)
-    a = (R @ torch.stack([stats.s_i, stats.s_j], 1).to(dt)[..., None])[..., 0]  # (M, 2, 3) R s
-    Q = a + n[:, None, None] * t  # (M, 2, 3): Q_i, Q_j
-    first, second = [0, 0, 1], [0, 1, 1]  # moments (i, i), (i, j), (j, j)
-    S = torch.stack([stats.S_ii, stats.S_ij, stats.S_jj], 1).to(dt)  # (M, 3, 3, 3)
-    # M_ab = R_a S_ab R_b^T + Q_a t_b^T + t_a (R_b s_b)^T   (Q_a = R_a s_a + n t_a)
-    Mom = R[:, first] @ S @ R[:, second].transpose(-1, -2) \
-        + Q[:, first, :, None] * t[:, second, None, :] + t[:, first, :, None] * a[:, second, None, :]
-    M_ij = Mom[:, 1]
+    a_i = (Ri @ stats.s_i.to(dt)[..., None])[..., 0]  # (M, 3) R_i s_i
+    a_j = (Rj @ stats.s_j.to(dt)[..., None])[..., 0]
+    Q_i = a_i + n[:, None] * ti
+    Q_j = a_j + n[:, None] * tj
+
+    def moment(RS: Tensor, Rb: Tensor, Qa: Tensor, tb: Tensor, ta: Tensor, ab: Tensor) -> Tensor:
+        # M_ab = R_a S_ab R_b^T + Q_a t_b^T + t_a (R_b s_b)^T   (Q_a = R_a s_a + n t_a)
+        return RS @ Rb.transpose(-1, -2) + Qa[:, :, None] * tb[:, None, :] + ta[:, :, None] * ab[:, None, :]
+
+    M_ij = moment(Ri @ stats.S_ij.to(dt), Rj, Q_i, tj, ti, a_j)
+    M_ii = moment(Ri @ stats.S_ii.to(dt), Ri, Q_i, ti, ti, a_i)
+    M_jj = moment(Rj @ stats.S_jj.to(dt), Rj, Q_j, tj, tj, a_j)
     g_rot = -_vex(M_ij.transpose(-1, -2) - M_ij)  # M^T - M is skew, so _vex is exact here
-    g_i = torch.cat([Q[:, 0] - Q[:, 1], g_rot], dim=-1)
+    g_i = torch.cat([Q_i - Q_j, g_rot], dim=-1)
     eye = torch.eye(3, dtype=dt, device=T_wc.device)
-    trace = torch.diagonal(Mom, dim1=-2, dim2=-1).sum(-1)[..., None, None]
-    W = _skew(Q)  # (M, 2, 3, 3)
-    H = T_wc.new_empty(M, 3, 6, 6)
-    H[..., :3, :3] = n[:, None, None, None] * eye
-    H[..., :3, 3:] = -W[:, second]
-    H[..., 3:, :3] = W[:, first]
-    H[..., 3:, 3:] = trace * eye - Mom.transpose(-1, -2)  # -K(M) = -(M^T - tr(M) I)
-    H = H * torch.tensor([1.0, -1.0, 1.0], dtype=dt, device=T_wc.device)[:, None, None]
-    blocks = (H[:, 0], H[:, 1], H[:, 2])
+    nI = n[:, None, None] * eye
+
+    def K(M: Tensor) -> Tensor:
+        return M.transpose(-1, -2) - torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye
+
+    Wi, Wj = _skew(Q_i), _skew(Q_j)
+
+    def block(tl: Tensor, tr: Tensor, bl: Tensor, br: Tensor) -> Tensor:
+        return torch.cat([torch.cat([tl, tr], -1), torch.cat([bl, br], -1)], -2)
+
+    H_ii = block(nI, -Wi, Wi, -K(M_ii))
+    H_jj = block(nI, -Wj, Wj, -K(M_jj))
+    H_ij = -block(nI, -Wj, Wi, -K(M_ij))
     if not with_curvature:
-        return blocks, g_i, M_ij
+        return (H_ii, H_ij, H_jj), g_i, M_ij
     # Residual curvature of the left perturbation: exp(d) q = q + d^q + d^d^q / 2 + ..., with
     # d^d^q = phi x (phi x q) + phi x rho, so sum_k r_k . d^d^q_k is the quadratic form of
     # [[0, [R]x / 2], [-[R]x / 2, sym(A) - tr(A) I]] with A = sum r q^T, R = sum r. Only
     # poses i and j themselves are involved (no coupling block); pose j enters with -r.
-    A = torch.stack([Mom[:, 0] - M_ij.transpose(-1, -2), Mom[:, 2] - M_ij], 1)  # (M, 2, 3, 3)
-    r_sum = Q[:, 0] - Q[:, 1]
-    half = 0.5 * _skew(torch.stack([r_sum, -r_sum], 1))
-    Sc = T_wc.new_zeros(M, 2, 6, 6)
-    Sc[..., :3, 3:] = half
-    Sc[..., 3:, :3] = -half
-    Sc[..., 3:, 3:] = 0.5 * (A + A.transpose(-1, -2)) - torch.diagonal(A, dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye
-    return blocks, g_i, M_ij, (Sc[:, 0], Sc[:, 1])
+    zero = torch.zeros_like(nI)
+
+    def curvature(A: Tensor, R: Tensor) -> Tensor:
+        half = 0.5 * _skew(R)
+        sym = 0.5 * (A + A.transpose(-1, -2)) - torch.diagonal(A, dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye
+        return block(zero, half, -half, sym)
+
+    S_i = curvature(M_ii - M_ij.transpose(-1, -2), Q_i - Q_j)
+    S_j = curvature(M_jj - M_ij, Q_j - Q_i)
+    return (H_ii, H_ij, H_jj), g_i, M_ij, (S_i, S_j)
 
 
 def pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> Tensor:
