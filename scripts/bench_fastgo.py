@@ -353,7 +353,8 @@ def main() -> None:
         "loadavg_start": load0, "loadavg_end": list(os.getloadavg()), "quick": args.quick,
         "wall_s": time.perf_counter() - start,
         "problem": "loop_route_problem(N, loops_per_keyframe=3, local_pairs=2, correspondences=16, noise=0.01 m, "
-                   "drift 1e-3 rad / 2 mm per step), 4 laps; FastGOConfig() defaults",
+                   "drift 1e-3 rad / 2 mm per step), 4 laps",
+        "config": {k: str(v) for k, v in vars(FastGOConfig()).items()},
     }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_fastgo.json").write_text(json.dumps(res, indent=2))

@@ -552,7 +552,7 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
         L_ss.append(L)
         infos.append(info)
         if nu:
-            Lu = torch.linalg.solve_triangular(L, F[m:, :m].transpose(0, 1), upper=False).transpose(0, 1)
+            Lu = torch.linalg.solve_triangular(L.transpose(0, 1), F[m:, :m], upper=True, left=False)  # X L^T = F_US
             L_us.append(Lu)
             updates[k] = torch.addmm(F[m:, m:], Lu, Lu.transpose(0, 1), alpha=-1)
         else:
