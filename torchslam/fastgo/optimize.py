@@ -2,7 +2,10 @@
 
 Minimises FastGO Eq. (1), ``sum_pairs sum_k w |T_i p_i^k - T_j p_j^k|^2``, from per-pair
 statistics only (see :mod:`torchslam.fastgo.linearize`): every iteration costs O(#pairs) to
-linearise plus one block-sparse Cholesky solve (:mod:`torchslam.optim.blocksparse`).
+linearise plus one block-sparse Cholesky solve (:mod:`torchslam.optim.blocksparse`). Near the
+optimum the residual curvature, also O(#pairs) from the statistics, turns the Gauss-Newton steps
+into Newton steps (``FastGOConfig.newton``); large graphs with noisy pairs otherwise crawl along
+their soft bending modes for many iterations.
 
 Beyond the paper, an optional robust variant re-weights whole pairs by their RMS residual
 (IRLS with Huber, Cauchy, Geman-McClure or Tukey kernels): a robust norm cannot act on single

@@ -8,7 +8,14 @@ a converged problem takes zero steps while the others go on.
 Convention:
     Updates are left-multiplicative, ``T <- se3_exp(delta) @ T``, with twists ``(rho, phi)``.
     The caller's ``linearize`` must return the Gauss-Newton system in that parameterisation:
-    ``H = J^T J``, ``g = J^T r`` and cost ``r^T r`` summed per problem.
+    ``H = J^T J``, ``g = J^T r`` and cost ``r^T r`` summed per problem, and may add the
+    residual-curvature blocks ``S`` of the exact Hessian ``H + S``.
+
+Beyond plain Levenberg-Marquardt: an accepted step is extended along its direction when a
+1-D quadratic fit says the cost keeps falling (Gauss-Newton undershoots on soft modes), and
+near the optimum the exact Hessian replaces ``J^T J`` when ``S`` is given (Newton steps,
+quadratic convergence even with noisy residuals). Steps whose predicted gain is below
+round-off are taken on the model's word, so noise-free problems converge to full precision.
 """
 
 from __future__ import annotations
