@@ -187,9 +187,10 @@ def levenberg_marquardt_se3(
         decrease = (cost - cost_new).detach()
         # Reduction predicted by the undamped quadratic model, -g.d - d.H d / 2: when it is
         # below the tolerance there is nothing left to gain, whatever round-off does to the
-        # evaluated cost (noise-free problems sit at a round-off floor).
+        # evaluated cost (noise-free problems sit at a round-off floor). As (H + D) d = -g,
+        # d.H d = -g.d - d.D d, so no product with H is needed.
         dd = delta.detach()
-        pred_node = -(g.detach() * dd).sum(-1) - 0.5 * (dd * model.matvec(dd).detach()).sum(-1)
+        pred_node = -0.5 * (g.detach() * dd).sum(-1) + 0.5 * (damp.detach() * dd * dd).sum(-1)
         pred = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, pred_node)
         limit = config.tol * cost.detach()
         # Close to the optimum the evaluated cost cannot resolve the step any more (its
