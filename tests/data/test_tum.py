@@ -138,6 +138,21 @@ def test_association_one_to_one_with_gaps(tmp_path):
     assert (a.dropped_rgb, a.dropped_depth) == (6 - len(ref), 7 - len(ref))
     assert a.max_gap_s == pytest.approx(max(gaps), abs=1e-9) and a.mean_gap_s == pytest.approx(np.mean(gaps), abs=1e-9)
     assert len(set(seq.depth_paths)) == len(seq)  # one-to-one
+
+
+def test_frame_carries_its_depth_timestamp(tmp_path):
+    rgb_t = [10.000, 10.033, 10.066, 10.100]
+    depth_t = [9.985, 10.049, 10.052, 10.117]  # offsets -15, +16, -14, +17 ms as on TUM fr1
+    _write_seq(tmp_path / "seq", rgb_t, depth_t)
+    seq = TUMSequence(tmp_path / "seq")
+    ref = _greedy_reference(rgb_t, depth_t, 0.02)
+    assert len(seq) == len(ref)
+    for k, (i, j) in enumerate(ref):
+        f = seq[k]
+        assert f.timestamp == pytest.approx(rgb_t[i], abs=1e-9)
+        assert f.depth_timestamp == pytest.approx(depth_t[j], abs=1e-9)
+        # The decoded depth image is the one written at that stamp (its marker pixel).
+        assert float(f.depth[0, 2, 0]) * 5000.0 == pytest.approx(1000 * (j + 1), abs=1e-3)
     for k, (_, j) in enumerate(ref):
         raw = float(seq[k].depth[0, 2, 0]) * 5000.0
         assert raw == pytest.approx(1000 * (j + 1), rel=1e-6)

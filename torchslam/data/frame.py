@@ -26,6 +26,9 @@ class Frame:
         rgb: (3, H, W) float32 colour in [0, 1].
         depth: (1, H, W) float32 depth in metres, 0 = invalid.
         T_wc: (4, 4) float64 ground-truth camera-to-world pose, or None where there is none.
+        depth_timestamp: seconds at which the depth image was taken, where it differs from the
+            colour image's (TUM pairs colour and depth up to 20 ms apart); None when the
+            sequence does not record it (then the depth is taken at ``timestamp``).
     """
 
     index: int
@@ -33,6 +36,7 @@ class Frame:
     rgb: Tensor
     depth: Tensor
     T_wc: Tensor | None = None
+    depth_timestamp: float | None = None
 
 
 @runtime_checkable

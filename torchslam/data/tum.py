@@ -486,6 +486,7 @@ class TUMSequence:
             rgb=torch.from_numpy(rgb_np),
             depth=torch.from_numpy(metres)[None],  # (1, H, W)
             T_wc=T_wc,
+            depth_timestamp=float(self.depth_timestamps[i]),
         )
 
 
