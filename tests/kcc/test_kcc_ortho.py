@@ -17,6 +17,7 @@ from torchslam.kcc import (
     kcc_train,
     orthographic_project,
     rgbd_to_points,
+    sample_grey,
 )
 
 
@@ -235,3 +236,40 @@ def test_bad_inputs_raise():
         choose_resolution(pts.long(), valid)
     with pytest.raises(ShapeError, match="rgb"):
         grey_from_rgb(torch.rand(1, 4, 8, 8))
+
+
+def test_sample_grey_matches_scipy_bilinear_reprojection():
+    """Points rotated into another camera, projected and sampled bilinearly; scipy is the oracle."""
+    from scipy.ndimage import map_coordinates
+    from scipy.spatial.transform import Rotation
+
+    B, H, W = 2, 24, 32
+    g = _gen(3)
+    rgb = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
+    depth = 1.0 + torch.rand(B, 1, H, W, generator=g, dtype=torch.float64)
+    depth[0, 0, 5, 7] = 0.0
+    intr = torch.tensor([[30.0, 31.0, 15.2, 11.7], [28.0, 29.5, 16.1, 12.3]], dtype=torch.float64)
+    points, grey0, valid = rgbd_to_points(rgb, depth, intr)
+    R = torch.from_numpy(Rotation.from_rotvec([[0.02, -0.03, 0.01], [-0.04, 0.01, 0.05]]).as_matrix())
+    grey, ok = sample_grey(rgb, points, valid, R, intr)
+    img = grey_from_rgb(rgb).view(B, H, W).numpy()
+    for b in range(B):
+        q = points[b].numpy() @ R[b].numpy().T
+        fx, fy, cx, cy = intr[b].numpy()
+        z = np.where(q[:, 2] > 0, q[:, 2], 1.0)  # the depth hole back-projects to z = 0
+        u = fx * q[:, 0] / z + cx
+        v = fy * q[:, 1] / z + cy
+        inside = valid[b].numpy() & (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+        np.testing.assert_array_equal(ok[b].numpy(), inside)
+        # Border pixels extend outwards by half a pixel (edge replication), as mode="nearest" does.
+        ref = map_coordinates(img[b], np.stack([v, u]), order=1, mode="nearest")
+        np.testing.assert_allclose(grey[b].numpy()[inside], ref[inside], atol=1e-6)
+        assert (grey[b].numpy()[~inside] == 0).all()
+    assert not bool(ok[0].view(H, W)[5, 7])
+    assert 0.3 * H * W < int(ok.sum()) < B * H * W  # some fall outside, most stay inside
+    # No rotation: the colour pixel of each point, unchanged.
+    same, ok_same = sample_grey(rgb, points, valid, torch.eye(3, dtype=torch.float64).expand(B, 3, 3), intr)
+    torch.testing.assert_close(same[valid], grey0[valid], atol=1e-6, rtol=0)
+    assert torch.equal(ok_same, valid)
+    with pytest.raises(ShapeError, match="points"):
+        sample_grey(rgb, points[:, :-1], valid[:, :-1], R, intr)

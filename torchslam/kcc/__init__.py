@@ -34,7 +34,7 @@ from .correlator import (
     spectral_energy,
 )
 from .fusion import DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
-from .ortho import OrthoImages, choose_resolution, grey_from_rgb, orthographic_project, rgbd_to_points
+from .ortho import OrthoImages, choose_resolution, grey_from_rgb, orthographic_project, rgbd_to_points, sample_grey
 
 __all__ = [
     "ChannelNorm",
@@ -62,6 +62,7 @@ __all__ = [
     "orthographic_project",
     "peak_to_sidelobe",
     "rgbd_to_points",
+    "sample_grey",
     "shift_image",
     "shift_variance",
     "soft_argmax",
