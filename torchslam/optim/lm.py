@@ -185,12 +185,13 @@ def levenberg_marquardt_se3(
         step = delta.detach().abs().amax(-1)
         step_p = torch.zeros(B, dtype=dt, device=dev).scatter_reduce(0, node_problem, step, "amax")
         decrease = (cost - cost_new).detach()
-        # Reduction predicted by the undamped quadratic model, -g.d - d.H d / 2: when it is
-        # below the tolerance there is nothing left to gain, whatever round-off does to the
-        # evaluated cost (noise-free problems sit at a round-off floor). As (H + D) d = -g,
-        # d.H d = -g.d - d.D d, so no product with H is needed.
+        # Reduction predicted by the undamped quadratic model of the cost r^T r, whose gradient
+        # is 2 g and Hessian 2 H: -2 g.d - d.H d. When it is below the tolerance there is
+        # nothing left to gain, whatever round-off does to the evaluated cost (noise-free
+        # problems sit at a round-off floor). As (H + D) d = -g, d.H d = -g.d - d.D d, so no
+        # product with H is needed.
         dd = delta.detach()
-        pred_node = -0.5 * (g.detach() * dd).sum(-1) + 0.5 * (damp.detach() * dd * dd).sum(-1)
+        pred_node = -(g.detach() * dd).sum(-1) + (damp.detach() * dd * dd).sum(-1)
         pred = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, pred_node)
         limit = config.tol * cost.detach()
         # Close to the optimum the evaluated cost cannot resolve the step any more (its
@@ -198,8 +199,12 @@ def levenberg_marquardt_se3(
         # 1e-10 of the cost is taken on the model's word, as plain Gauss-Newton would.
         near = ok_problem & (pred <= 1e-10 * cost.detach())
         accept = active & ok_problem & torch.isfinite(cost_new) & ((cost_new <= cost) | near)
+        # A Newton step (exact Hessian, negligible damping) whose gain the quadratic model
+        # predicted to within the tolerance has landed at the optimum up to higher-order terms
+        # (the new gradient is O(|d|^2)): no confirmation step is needed.
+        newton_exact = use_newton & (lam <= 1e-4) & accept & ((decrease - pred).abs() <= limit)
         done = active & (
-            (accept & (decrease <= limit)) | (ok_problem & (pred <= limit)) | (step_p <= config.step_tol)
+            (accept & (decrease <= limit)) | (ok_problem & (pred <= limit)) | (step_p <= config.step_tol) | newton_exact
         )
         if config.line_search:
             # Floppy modes of large pose graphs are softer than the Gauss-Newton model says
