@@ -132,6 +132,9 @@ class NISlamConfig:
         pixel_stride: use every n-th pixel in x and y of the depth image (1 = all; 2 quarters
             the projection cost).
         min_valid_points: frames with fewer valid depth points are not tracked.
+        max_jump_m: a frame whose position departs from the constant-velocity prediction by
+            more than this is treated like a PSR collapse (beyond the paper: a false
+            correlation peak can score just above T_K while the true peak fades).
         grey_at_depth_time: where the depth image was taken at another instant than the colour
             image (``Frame.depth_timestamp``), sample each point's grey value where the point
             appears in the colour image after the attitude stream's rotation between the two
@@ -154,6 +157,7 @@ class NISlamConfig:
     attitude_max_gap: float = 0.1
     pixel_stride: int = 1
     min_valid_points: int = 1000
+    max_jump_m: float = 0.1
     grey_at_depth_time: bool = True
     kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True))
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -361,6 +365,8 @@ class NISlam:
         self.orb_cfg = ORBConfig(n_features=cfg.loop.orb_features)
         self.posegraph_ms: list[float] = []
         self._last: dict[str, Any] | None = None
+        self.motion_prior_frames = 0
+        self._history_start = 0
 
     def _tic(self) -> float:
         return time.perf_counter()
@@ -403,20 +409,28 @@ class NISlam:
             return
         res, T_wi = self._track_against_keyframe(points, grey, valid, R_wi)
         t0 = self._toc("kcc", t0)
-        if self._lost(res) and self._last is not None:
+        p_pred = self._predicted_position(frame.timestamp)
+        if self._lost(res, T_wi, p_pred) and self._last is not None:
             # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
             # so the last well-tracked frame becomes the keyframe and this frame is matched again.
             last = self._last
             self._new_keyframe(last["frame"], last["T_wi"], last["R_att"], last["points"], last["grey"], last["valid"],
                                last["rgb"], previous=self.keyframes[-1], variance=last["variance"])
             self._rebase_last_frame()
+            # A loop closed at that keyframe may have corrected the attitude: apply it.
+            R_wi = self.R_corr @ R_att[0]
+            p_pred = self._predicted_position(frame.timestamp)  # None if that loop reset the history
             res, T_wi = self._track_against_keyframe(points, grey, valid, R_wi)
             t0 = self._toc("kcc", t0)
         kf = self.keyframes[-1]
         psr = float(res.psr[0])
         self.psr.append(psr)
         self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
-        if self._lost(res):
+        if self._lost(res, T_wi, p_pred):
+            if self._jump(T_wi, p_pred):
+                # Even the fresh keyframe gives an implausible jump: keep the motion prior.
+                T_wi = se3_from_Rt(R_wi, p_pred)
+                self.motion_prior_frames += 1
             # Nothing better to match against: the frame starts a keyframe of its own.
             self._new_keyframe(frame, T_wi, R_att[0], points, grey, valid, rgb, previous=kf, variance=res.variance[0], track=res)
             self._last = None
@@ -432,8 +446,26 @@ class NISlam:
                           "rgb": rgb, "variance": res.variance[0]}
         self._record(frame, T_wi)
 
-    def _lost(self, res: TrackResult) -> bool:
-        return float(res.psr[0]) < self.cfg.kcc.T_K or not bool(res.depth_ok[0])
+    def _jump(self, T_wi: Tensor, p_pred: Tensor | None) -> bool:
+        return p_pred is not None and float((T_wi[:3, 3] - p_pred).norm()) > self.cfg.max_jump_m
+
+    def _lost(self, res: TrackResult, T_wi: Tensor, p_pred: Tensor | None) -> bool:
+        return float(res.psr[0]) < self.cfg.kcc.T_K or not bool(res.depth_ok[0]) or self._jump(T_wi, p_pred)
+
+    def _predicted_position(self, t: float) -> Tensor | None:
+        """Constant-velocity prediction from the last two recorded frames (None before two).
+
+        A loop correction moves keyframes by different amounts, so velocities straddling one are
+        meaningless: the history restarts after every accepted loop.
+        """
+        if len(self.frame_T_kf) - self._history_start < 2:
+            return None
+        T = [self.keyframes[self.frame_kf[k]].T_wk @ self.frame_T_kf[k] for k in (-2, -1)]
+        t1, t2 = self.frame_time[-2], self.frame_time[-1]
+        if not t2 > t1:
+            return T[1][:3, 3]
+        v = (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
+        return T[1][:3, 3] + v * (t - t2)
 
     def _track_against_keyframe(self, points, grey, valid, R_wi) -> tuple[TrackResult, Tensor]:
         kf = self.keyframes[-1]
@@ -567,6 +599,7 @@ class NISlam:
             logger.info("loop %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, float(bend))
             return
         self.loops["accepted"] += 1
+        self._history_start = len(self.frame_T_kf)
         for kf, T in zip(self.keyframes, res.T_wc):
             kf.T_wk = T
         # Fuse the back-end into the attitude: the newest keyframe's optimised rotation replaces
@@ -627,6 +660,7 @@ class NISlam:
             "attitude_source": self.attitude.source,
             "psr": stats,
             "fused_frames": self.fused,
+            "motion_prior_frames": self.motion_prior_frames,
             "untracked": dict(self.untracked),
             "loops": dict(self.loops),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,

@@ -1,0 +1,177 @@
+"""Benchmark NI-SLAM: accuracy on every sequence per attitude source, frame rates, batched KCC stage.
+
+Writes ``scripts/results/bench_nislam.json`` and ``bench_nislam.png`` and prints markdown tables.
+
+    python scripts/bench_nislam.py                 # everything (a few minutes on 2 cores)
+    python scripts/bench_nislam.py --quick         # smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from torchslam.config import config_from_dict
+from torchslam.data import Trajectory
+from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+from torchslam.data.tum import TUMSequence
+from torchslam.eval import ate
+from torchslam.kcc import choose_resolution, kcc_features, kcc_train, keyframe_map, orthographic_project, rgbd_to_points
+from torchslam.slam import run_sequence
+from torchslam.slam.nislam import NISlam, NISlamConfig, track_step
+
+PAPER_ATE_M = {"tum_fr1_xyz": 0.011}  # NI-SLAM Table 1 (ground-truth attitude on TUM)
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "python": platform.python_version(), "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+def accuracy(data_root: Path, quick: bool) -> list[dict]:
+    rows = []
+    cases = []
+    for name in ("tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs"):
+        if (data_root / name / "rgb.txt").is_file():
+            for att in ("groundtruth", "simulated"):
+                cases.append((name, att))
+    cases += [("synthetic-orbit", "imu"), ("synthetic-translate", "imu"), ("synthetic-loop", "imu")]
+    for name, att in cases:
+        if name.startswith("synthetic"):
+            kind = name.split("-", 1)[1]
+            seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind))
+        else:
+            seq = TUMSequence(data_root / name, prefetch=2, end=40 if quick else None)
+        cfg = config_from_dict(NISlamConfig, {"attitude": att})
+        t0 = time.perf_counter()
+        res = run_sequence(NISlam(cfg), seq)
+        wall = time.perf_counter() - t0
+        out = res.output
+        a = ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
+        rows.append({
+            "sequence": name, "attitude": att, "frames": len(seq), "tracked": len(out.T_wc),
+            "keyframes": len(out.keyframe_indices), "loops_accepted": out.metrics["loops"]["accepted"],
+            "ate_rmse_m": a.stats["rmse"], "paper_ate_rmse_m": PAPER_ATE_M.get(name) if att == "groundtruth" else None,
+            "fps_end_to_end": res.fps_end_to_end, "fps_compute": res.fps_compute, "wall_s": wall,
+            "stage_ms_per_frame": {k: v / max(res.frames_processed, 1) for k, v in out.stage_ms.items()},
+        })
+        print(f"  {name:22s} {att:11s} ATE {a.stats['rmse'] * 100:6.2f} cm  {res.fps_end_to_end:6.1f} fps e2e  {res.fps_compute:6.1f} fps compute")
+    return rows
+
+
+def batched_kcc(data_root: Path, sizes: list[int], device: str, repeat: int) -> list[dict]:
+    """Frames/s of the per-frame KCC stage (ortho projection + correlation + PSR + depth) vs B."""
+    seq = TUMSequence(data_root / "tum_fr1_xyz", end=2)
+    f0, f1 = seq[0], seq[1]
+    intr = seq.camera.as_tensor(torch.float32, device)[None]
+    k = NISlamConfig().kcc
+    size = (k.ortho_height, k.ortho_width)
+    rows = []
+    for B in sizes:
+        p0, g0, v0 = rgbd_to_points(f0.rgb[None].to(device), f0.depth[None].to(device), intr)
+        p1, g1, v1 = rgbd_to_points(f1.rgb[None].to(device), f1.depth[None].to(device), intr)
+        p0, g0, v0 = p0.expand(B, -1, -1).contiguous(), g0.expand(B, -1).contiguous(), v0.expand(B, -1).contiguous()
+        p1, g1, v1 = p1.expand(B, -1, -1).contiguous(), g1.expand(B, -1).contiguous(), v1.expand(B, -1).contiguous()
+        r = choose_resolution(p0, v0, size, k.coverage, k.sample_step)
+        kf = orthographic_project(p0, g0, v0, None, r, size)
+        filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid, k.channel_norm, k.fill_holes), k.sigma, k.lam)
+        km = keyframe_map(kf)
+        R = torch.eye(3, device=device).expand(B, 3, 3)
+        track_step(p1, g1, v1, R, km, filt, r, k)  # warm-up
+        times = []
+        for _ in range(repeat):
+            if device == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            track_step(p1, g1, v1, R, km, filt, r, k)
+            if device == "cuda":
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t0)
+        best = min(times)
+        med = sorted(times)[len(times) // 2]
+        rows.append({"device": device, "B": B, "ms_per_batch_median": 1000 * med, "frames_per_s_median": B / med,
+                     "frames_per_s_best": B / best})
+        print(f"  {device} B={B:3d}: {B / med:8.1f} frames/s (median of {repeat}), {B / best:8.1f} best")
+    return rows
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    acc = result["accuracy"]
+    labels = [f"{r['sequence']}\n{r['attitude']}" for r in acc]
+    axes[0].bar(range(len(acc)), [100 * r["ate_rmse_m"] for r in acc], color="tab:blue")
+    for i, r in enumerate(acc):
+        if r["paper_ate_rmse_m"] is not None:
+            axes[0].plot([i - 0.4, i + 0.4], [100 * r["paper_ate_rmse_m"]] * 2, "r--", label="paper")
+    axes[0].set_xticks(range(len(acc)), labels, rotation=60, ha="right", fontsize=7)
+    axes[0].set_ylabel("ATE RMSE (cm)")
+    axes[0].set_title("NI-SLAM accuracy")
+    axes[0].legend(loc="upper left")
+    for dev in sorted({r["device"] for r in result["batched_kcc"]}):
+        rows = [r for r in result["batched_kcc"] if r["device"] == dev]
+        axes[1].plot([r["B"] for r in rows], [r["frames_per_s_median"] for r in rows], "o-", label=dev)
+    axes[1].set_xscale("log", base=2)
+    axes[1].set_xlabel("batch size B")
+    axes[1].set_ylabel("frames/s (KCC stage)")
+    axes[1].set_title("Batched tracking step")
+    axes[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=os.environ.get("TORCHSLAM_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data")))
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    root = Path(args.data)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"machine": machine(), "quick": args.quick}
+    print(f"machine: {result['machine']}")
+    print("accuracy and frame rate per sequence:")
+    result["accuracy"] = accuracy(root, args.quick)
+    sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
+    print("batched KCC stage:")
+    result["batched_kcc"] = batched_kcc(root, sizes, "cpu", 3 if args.quick else 5)
+    if torch.cuda.is_available():
+        result["batched_kcc"] += batched_kcc(root, sizes, "cuda", 20)
+    (out / "bench_nislam.json").write_text(json.dumps(result, indent=2) + "\n")
+    plot(result, out / "bench_nislam.png")
+    print("\n| sequence | attitude | frames | keyframes | loops | ATE RMSE (cm) | paper (cm) | frames/s end-to-end | frames/s compute |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    for r in result["accuracy"]:
+        paper = f"{100 * r['paper_ate_rmse_m']:.1f}" if r["paper_ate_rmse_m"] else "–"
+        print(f"| {r['sequence']} | {r['attitude']} | {r['frames']} | {r['keyframes']} | {r['loops_accepted']} | "
+              f"{100 * r['ate_rmse_m']:.2f} | {paper} | {r['fps_end_to_end']:.1f} | {r['fps_compute']:.1f} |")
+    print("\n| device | B | frames/s (median) | frames/s (best) |\n|---|---:|---:|---:|")
+    for r in result["batched_kcc"]:
+        print(f"| {r['device']} | {r['B']} | {r['frames_per_s_median']:.1f} | {r['frames_per_s_best']:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
