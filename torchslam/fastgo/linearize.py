@@ -100,20 +100,24 @@ def _blocks(T_wc: Tensor, pairs: Tensor, stats: PairStats, with_curvature: bool 
     H_ij = -block(nI, -Wj, Wi, -K(M_ij))
     if not with_curvature:
         return (H_ii, H_ij, H_jj), g_i, M_ij
-    # Residual curvature of the left perturbation: exp(d) q = q + d^q + d^d^q / 2 + ..., with
-    # d^d^q = phi x (phi x q) + phi x rho, so sum_k r_k . d^d^q_k is the quadratic form of
-    # [[0, [R]x / 2], [-[R]x / 2, sym(A) - tr(A) I]] with A = sum r q^T, R = sum r. Only
-    # poses i and j themselves are involved (no coupling block); pose j enters with -r.
-    zero = torch.zeros_like(nI)
 
-    def curvature(A: Tensor, R: Tensor) -> Tensor:
-        half = 0.5 * _skew(R)
-        sym = 0.5 * (A + A.transpose(-1, -2)) - torch.diagonal(A, dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye
-        return block(zero, half, -half, sym)
+    def curvatures() -> tuple[Tensor, Tensor]:
+        # Residual curvature of the left perturbation: exp(d) q = q + d^q + d^d^q / 2 + ...,
+        # with d^d^q = phi x (phi x q) + phi x rho, so sum_k r_k . d^d^q_k is the quadratic
+        # form of [[0, [R]x / 2], [-[R]x / 2, sym(A) - tr(A) I]] with A = sum r q^T,
+        # R = sum r. Only poses i and j themselves are involved (no coupling block); pose j
+        # enters with -r.
+        zero = torch.zeros_like(nI)
 
-    S_i = curvature(M_ii - M_ij.transpose(-1, -2), Q_i - Q_j)
-    S_j = curvature(M_jj - M_ij, Q_j - Q_i)
-    return (H_ii, H_ij, H_jj), g_i, M_ij, (S_i, S_j)
+        def curvature(A: Tensor, R: Tensor) -> Tensor:
+            half = 0.5 * _skew(R)
+            sym = 0.5 * (A + A.transpose(-1, -2)) - torch.diagonal(A, dim1=-2, dim2=-1).sum(-1)[:, None, None] * eye
+            return block(zero, half, -half, sym)
+
+        return curvature(M_ii - M_ij.transpose(-1, -2), Q_i - Q_j), curvature(M_jj - M_ij, Q_j - Q_i)
+
+    # The curvature is returned as a closure: callers that do not need it pay nothing.
+    return (H_ii, H_ij, H_jj), g_i, M_ij, curvatures
 
 
 def pair_cost(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> Tensor:
@@ -180,7 +184,7 @@ def residual_curvature(T_wc: Tensor, pairs: Tensor, stats: PairStats) -> tuple[T
         ``(S_i, S_j)``, each (M, 6, 6) symmetric.
     """
     _check_inputs(T_wc, pairs, stats)
-    return _blocks(T_wc, pairs, stats, with_curvature=True)[3]
+    return _blocks(T_wc, pairs, stats, with_curvature=True)[3]()
 
 
 def assemble(lin: PairLinearization, pairs: Tensor, num_nodes: int) -> tuple[BlockSparseMatrix, Tensor]:

@@ -409,8 +409,12 @@ def _run(work: _Work, config: FastGOConfig):
             cost = c.new_zeros(B).index_add(0, pp, c)
             if not config.newton:
                 return H, g, cost
-            S_i, S_j = out[3]
-            S = S_i.new_zeros(N, 6, 6).index_add(0, pairs[:, 0], S_i).index_add(0, pairs[:, 1], S_j)
+            curvatures = out[3]
+
+            def S() -> Tensor:
+                S_i, S_j = curvatures()
+                return S_i.new_zeros(N, 6, 6).index_add(0, pairs[:, 0], S_i).index_add(0, pairs[:, 1], S_j)
+
             return H, g, cost, S
 
         def evaluate(T_: Tensor, stats=stats, cen=cen):

@@ -130,7 +130,8 @@ def levenberg_marquardt_se3(
         linearize: ``T -> (H, g, cost)`` or ``(H, g, cost, S)`` with ``H`` a
             :class:`BlockSparseMatrix` over the N poses (same pattern every call), ``g`` (N, 6),
             ``cost`` (B,) and optional ``S`` (N, 6, 6) residual-curvature diagonal blocks (the
-            exact Hessian is ``H + S``).
+            exact Hessian is ``H + S``), or a function returning them, called only when a
+            Newton step is tried.
         evaluate: ``T -> cost`` (B,), the same cost without the linearisation.
         fixed: (N,) bool mask of poses held constant (gauges).
         config: iteration and damping settings.
@@ -168,6 +169,8 @@ def levenberg_marquardt_se3(
         model = H
         for attempt in range(2):
             if bool(use_newton.any()):
+                if callable(S):
+                    S = S()
                 model = BlockSparseMatrix(H.diag + S * use_newton[node_problem][:, None, None].to(dt), H.off, H.rows, H.cols)
             else:
                 model = H
