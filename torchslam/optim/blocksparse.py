@@ -238,6 +238,24 @@ def _adjacency(n: int, rows: np.ndarray, cols: np.ndarray):
     return A
 
 
+def _induced(A, nodes: np.ndarray, local: np.ndarray):
+    """Subgraph of the CSR adjacency ``A`` induced by ``nodes`` (``local`` is scratch, all -1)."""
+    import scipy.sparse as sp
+
+    k = nodes.size
+    local[nodes] = np.arange(k)
+    starts = A.indptr[nodes]
+    counts = A.indptr[nodes + 1] - starts
+    flat = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(int(counts.sum()))
+    nb = local[A.indices[flat]]
+    keep = nb >= 0
+    rows = np.repeat(np.arange(k), counts)[keep]
+    ptr = np.zeros(k + 1, dtype=np.int32)
+    np.cumsum(np.bincount(rows, minlength=k), out=ptr[1:])
+    local[nodes] = -1
+    return sp.csr_matrix((np.ones(rows.size), nb[keep].astype(np.int32), ptr), shape=(k, k))
+
+
 def _bisect(A_sub) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Split a connected graph by a breadth-first level set; ``None`` when it has too few levels."""
     from scipy.sparse.csgraph import breadth_first_order, shortest_path
@@ -324,11 +342,12 @@ def analyze(
     sn_nodes: list[np.ndarray] = []
     sn_parent: list[int] = []
     stack: list[tuple[np.ndarray, int]] = [(np.arange(nf), -1)]
+    scratch = np.full(nf, -1, dtype=np.int64)
     while stack:
         nodes, parent = stack.pop()
         if nodes.size == 0:
             continue
-        sub = A[nodes][:, nodes]
+        sub = _induced(A, nodes, scratch)
         ncomp, labels = connected_components(sub, directed=False)
         order = np.argsort(labels, kind="stable")
         bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
@@ -340,7 +359,7 @@ def analyze(
                 sn_nodes.append(comp)
                 sn_parent.append(parent)
                 continue
-            split = _bisect(sub if ncomp == 1 else A[comp][:, comp])
+            split = _bisect(sub if ncomp == 1 else _induced(A, comp, scratch))
             if split is None or split[0].size >= comp.size // 2:
                 sn_nodes.append(comp)  # dense-ish part: no useful separator
                 sn_parent.append(parent)
