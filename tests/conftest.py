@@ -26,6 +26,19 @@ def shared_data() -> Path:
     return root
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Run every test on one intra-op thread and restore the setting afterwards.
+
+    Most tests run many small tensor ops; on a 2-core machine that is also running something
+    else, two intra-op threads mostly wait on each other and make them several times slower.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def pytest_collection_modifyitems(config, items):
     if torch.cuda.is_available():
         return

@@ -33,15 +33,6 @@ from torchslam.imu import AttitudeStream, attitude_errors, integrate_gyro
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Rendering is many large element-wise ops; on a shared 2-core machine intra-op threads
-    # mostly wait on each other, so these tests run on one thread and restore the setting.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
 
 def _small(**kw) -> SyntheticConfig:
     base = dict(frames=12, width=160, height=120, depth_noise=False, batch_size=4)

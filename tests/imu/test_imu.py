@@ -30,15 +30,6 @@ F64 = torch.float64
 G_W = (0.0, 0.0, -9.81)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # These tests run many small tensor ops; on a shared 2-core machine intra-op threading
-    # makes them an order of magnitude slower, so run them on one thread and restore after.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
 
 def _rz(a: torch.Tensor) -> torch.Tensor:
     c, s, o, i = torch.cos(a), torch.sin(a), torch.zeros_like(a), torch.ones_like(a)

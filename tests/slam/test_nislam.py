@@ -20,14 +20,6 @@ from ..conftest import REPO_ROOT
 SMALL = dict(width=320, height=240)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Two intra-op threads collapse when the other core is busy; one is steadier for tests.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _run(seq, **cfg):
     cfg = config_from_dict(NISlamConfig, cfg)

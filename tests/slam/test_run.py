@@ -2,8 +2,6 @@
 
 import json
 
-import pytest
-import torch
 import yaml
 
 from torchslam.cli import main
@@ -16,13 +14,6 @@ from torchslam.slam.outputs import METRIC_KEYS, write_run
 
 SMALL = ["--set", "data.synthetic.frames=12", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120"]
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_run_writes_the_complete_run_folder(tmp_path, capsys):
