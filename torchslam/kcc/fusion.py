@@ -111,6 +111,23 @@ def _aligned_frame(frame: OrthoImages, shift: Tensor) -> tuple[Tensor, Tensor, T
     )
 
 
+def _masked_lower_median(values: Tensor, mask: Tensor) -> Tensor:
+    """(B,) lower median of ``values[b][mask[b]]`` (as ``Tensor.median``), 0 where the mask is empty.
+
+    For one item the selected values are compacted and ``kthvalue`` picks the order statistic in
+    linear time, about three times faster than ``nanmedian`` over the whole image with the rest
+    set to NaN (which sorts); batches use the latter.
+    """
+    B = values.shape[0]
+    if B == 1:
+        sel = values.reshape(-1)[mask.reshape(-1)]
+        if sel.numel() == 0:
+            return values.new_zeros(1)
+        return sel.kthvalue((sel.numel() + 1) // 2).values.reshape(1)
+    flat = torch.where(mask, values, torch.full_like(values, math.nan)).flatten(1)
+    return torch.nan_to_num(flat.nanmedian(dim=1).values, nan=0.0)
+
+
 def depth_translation(
     frame: OrthoImages,
     keyframe: OrthoImages | KeyframeMap,
@@ -150,8 +167,7 @@ def depth_translation(
     candidate = xv & zv & ((xg - zg.to(xg.dtype)).abs() < T_c)
     center = diff.new_zeros(diff.shape[0])
     if median_center:
-        flat = torch.where(candidate, diff, torch.full_like(diff, math.nan)).flatten(1)
-        center = torch.nan_to_num(flat.nanmedian(dim=1).values, nan=0.0)  # (B,); 0 where no candidate
+        center = _masked_lower_median(diff, candidate)  # (B,); 0 where no candidate
     matched = candidate & ((diff - center[:, None, None]).abs() < T_d)
     m = matched.to(diff.dtype)
     count = matched.sum(dim=(1, 2))
