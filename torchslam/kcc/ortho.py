@@ -95,7 +95,9 @@ def rgbd_to_points(rgb: Tensor, depth: Tensor, intrinsics: Tensor) -> tuple[Tens
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 
-def sample_grey(rgb: Tensor, points: Tensor, valid: Tensor, rotation: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
+def sample_grey(
+    rgb: Tensor, points: Tensor, valid: Tensor, rotation: Tensor, intrinsics: Tensor, grey_image: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Grey values of points seen from a rotated camera: the colour image taken at another instant.
 
     A sensor whose colour and depth images are taken at different instants (TUM fr1: up to
@@ -113,6 +115,8 @@ def sample_grey(rgb: Tensor, points: Tensor, valid: Tensor, rotation: Tensor, in
         rotation: (B, 3, 3) rotation from the depth camera's frame into the colour camera's
             (``R_wc^T R_wd`` with camera-to-world attitudes).
         intrinsics: (B, 4) or (4,) ``(fx, fy, cx, cy)`` of the colour image, pixels.
+        grey_image: (B, H*W) ``grey_from_rgb(rgb)`` where the caller already has it (e.g. from
+            ``rgbd_to_points``), so it is not computed twice; ``None`` computes it.
 
     Returns:
         grey: (B, H*W) BT.601 grey at the re-projected positions (0 where not valid).
@@ -132,15 +136,22 @@ def sample_grey(rgb: Tensor, points: Tensor, valid: Tensor, rotation: Tensor, in
     if intr.dim() == 1:
         intr = intr[None].expand(B, 4)
     check_shape(intr, "B 4", "intrinsics", dims)
-    q = _rotate(points, rotation.to(points.dtype))  # (B, N, 3)
-    z = q[..., 2]
+    x, y, z = _rotate_planar(points, rotation.to(points.dtype)).unbind(1)  # (B, N) each
     front = z > 0
-    z_safe = torch.where(front, z, torch.ones_like(z))
-    u = intr[:, 0:1] * q[..., 0] / z_safe + intr[:, 2:3]  # pixel coordinates, centres at integers
-    v = intr[:, 1:2] * q[..., 1] / z_safe + intr[:, 3:4]
-    inside = front & (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+    z_safe = torch.where(front, z, 1.0)
+    u = intr[:, 0:1] * x / z_safe + intr[:, 2:3]  # pixel coordinates, centres at integers
+    v = intr[:, 1:2] * y / z_safe + intr[:, 3:4]
+    inside = front & (u >= -0.5)
+    inside &= u <= W - 0.5
+    inside &= v >= -0.5
+    inside &= v <= H - 0.5
     grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], dim=-1).view(B, H, W, 2)
-    grey_img = grey_from_rgb(rgb).view(B, 1, H, W)
+    if grey_image is None:
+        grey_image = grey_from_rgb(rgb)
+    else:
+        check_shape(grey_image, f"{B} {H * W}", "grey_image")
+        check_float(grey_image, "grey_image")
+    grey_img = grey_image.to(rgb.dtype).view(B, 1, H, W)
     grey = F.grid_sample(grey_img, grid.to(grey_img.dtype), mode="bilinear", padding_mode="border", align_corners=False)
     ok = valid & inside
     return torch.where(ok, grey.flatten(1).to(points.dtype), points.new_zeros(())), ok

@@ -395,7 +395,7 @@ class NISlam:
         points, grey, valid = rgbd_to_points(rgb, depth, self.intrinsics)
         if cfg.grey_at_depth_time and bool(ok[1]) and float(times[0]) != float(times[1]):
             R_cd = (R_att[1].T @ R_att[0]).to(points.dtype)[None]  # depth camera -> colour camera
-            grey, valid = sample_grey(rgb, points, valid, R_cd, self.intrinsics)
+            grey, valid = sample_grey(rgb, points, valid, R_cd, self.intrinsics, grey_image=grey)
         t0 = self._toc("backproject", t0)
         if int(valid.sum()) < cfg.min_valid_points:
             self.untracked["too_few_points"] += 1
