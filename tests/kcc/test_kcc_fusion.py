@@ -70,6 +70,24 @@ def test_shift_image_equals_loop_and_is_not_circular():
     assert torch.equal(shift_image(img, s.double() + 0.2, -1.0), out)
 
 
+def test_shift_image_single_item_slice_path_equals_loop_for_every_shift():
+    # B = 1 takes a slice copy instead of the batched gather: check it against the definition
+    # out[i, j] = img[i + s_y, j + s_x] for every shift, including ones past the border.
+    img = torch.rand(1, 5, 6, generator=_gen(3), dtype=torch.float64)
+    for sx in range(-7, 8):
+        for sy in range(-6, 7):
+            s = torch.tensor([[sx, sy]])
+            ref = np.full((1, 5, 6), -1.0)
+            for i in range(5):
+                for j in range(6):
+                    if 0 <= i + sy < 5 and 0 <= j + sx < 6:
+                        ref[0, i, j] = img[0, i + sy, j + sx]
+            np.testing.assert_array_equal(shift_image(img, s, fill=-1.0).numpy(), ref)
+            mask = shift_image(img > 0.5, s, False)
+            assert mask.dtype == torch.bool
+            np.testing.assert_array_equal(mask.numpy(), (ref > 0.5))
+
+
 def test_depth_translation_planted_with_noise_and_a_moving_object(kf):
     cfg = KCCConfig()
     s = torch.tensor([[9, -5]])

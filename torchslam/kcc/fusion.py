@@ -83,6 +83,16 @@ def shift_image(image: Tensor, shift: Tensor, fill: float | bool = 0) -> Tensor:
     check_shape(shift, f"{image.shape[0]} 2", "shift")
     B, H, W = image.shape
     s = shift.round().long() if shift.is_floating_point() else shift.long()
+    if B == 1:
+        # One item: the valid part is a rectangle, copied as a slice (no index arithmetic).
+        sx, sy = (int(v) for v in s[0].tolist())
+        out = torch.full_like(image, fill)
+        h, w = H - abs(sy), W - abs(sx)
+        if h > 0 and w > 0:
+            out[:, max(0, -sy) : max(0, -sy) + h, max(0, -sx) : max(0, -sx) + w] = image[
+                :, max(0, sy) : max(0, sy) + h, max(0, sx) : max(0, sx) + w
+            ]
+        return out
     rows = torch.arange(H, device=image.device)[None, :, None] + s[:, 1, None, None]  # (B, H, 1)
     cols = torch.arange(W, device=image.device)[None, None, :] + s[:, 0, None, None]  # (B, 1, W)
     inside = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)  # (B, H, W)
