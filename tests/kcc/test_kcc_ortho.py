@@ -273,3 +273,25 @@ def test_sample_grey_matches_scipy_bilinear_reprojection():
     assert torch.equal(ok_same, valid)
     with pytest.raises(ShapeError, match="points"):
         sample_grey(rgb, points[:, :-1], valid[:, :-1], R, intr)
+
+
+def test_rgbd_to_points_is_bit_identical_to_backproject_depth_across_cameras():
+    """The cached per-pixel factors must give exactly geometry.backproject_depth, per camera."""
+    from torchslam.geometry import backproject_depth
+
+    g = _gen(11)
+    for dtype in (torch.float32, torch.float64):
+        rgb = torch.rand(2, 3, 12, 16, generator=g, dtype=dtype)
+        depth = 0.5 + 3 * torch.rand(2, 1, 12, 16, generator=g, dtype=dtype)
+        depth[0, 0, 3, 4] = 0.0
+        depth[1, 0, 7, 1] = float("nan")
+        for intr in (
+            torch.tensor([[20.0, 21.0, 7.5, 5.5], [19.0, 22.0, 8.1, 6.2]], dtype=dtype),
+            torch.tensor([[20.0, 21.0, 7.5, 5.5], [19.0, 22.0, 8.1, 6.3]], dtype=dtype),  # cache must miss
+            torch.tensor([20.0, 21.0, 7.5, 5.5], dtype=dtype),
+        ):
+            for _ in range(2):  # second call hits the cache
+                pts, grey, valid = rgbd_to_points(rgb, depth, intr)
+                ref_pts, ref_valid = backproject_depth(depth, intr)
+                assert torch.equal(pts, ref_pts) and torch.equal(valid, ref_valid)
+                assert torch.equal(grey, grey_from_rgb(rgb))

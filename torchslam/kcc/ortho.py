@@ -26,7 +26,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
-from ..geometry import backproject_depth
 
 __all__ = [
     "OrthoImages",
@@ -61,7 +60,7 @@ class OrthoImages:
 
 
 def grey_from_rgb(rgb: Tensor) -> Tensor:
-    """Convert colour images to per-pixel grey values in the point order of ``backproject_depth``.
+    """Convert colour images to per-pixel grey values in the point order of ``geometry.backproject_depth``.
 
     Args:
         rgb: (B, 3, H, W) colour in [0, 1].
@@ -91,8 +90,43 @@ def rgbd_to_points(rgb: Tensor, depth: Tensor, intrinsics: Tensor) -> tuple[Tens
     dims: dict[str, int] = {}
     check_shape(rgb, "B 3 H W", "rgb", dims)
     check_shape(depth, "B 1 H W", "depth", dims)
-    points, valid = backproject_depth(depth, intrinsics)
+    check_float(depth, "depth")
+    B, _, H, W = depth.shape
+    intr = intrinsics.expand(B, 4) if intrinsics.dim() == 1 else intrinsics
+    check_shape(intr, "B 4", "intrinsics", dims)
+    # Same arithmetic as ``backproject_depth`` ((u - c) / f * z, bit-identical), with the per-pixel
+    # factors (u - c) / f kept between frames of one camera instead of rebuilt from a meshgrid.
+    rx, ry = _pixel_rays(intr.to(depth.dtype), H, W)
+    z = depth.reshape(B, H * W)
+    valid = torch.isfinite(z) & (z > 0)
+    z = torch.where(valid, z, 0.0)
+    points = torch.stack([rx * z, ry * z, z], dim=-1)  # (B, H*W, 3)
     return points, grey_from_rgb(rgb).to(points.dtype), valid
+
+
+_RAYS: dict[tuple, tuple[Tensor, Tensor]] = {}
+_RAYS_MAX = 8
+
+
+def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """((B, H*W), (B, H*W)) factors ``(u - c_x) / f_x`` and ``(v - c_y) / f_y``, cached per camera."""
+    key = (H, W, intr.dtype, intr.device, tuple(intr.detach().cpu().flatten().tolist()))
+    hit = _RAYS.get(key) if not intr.requires_grad else None
+    if hit is not None:
+        return hit
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=intr.dtype, device=intr.device),
+        torch.arange(W, dtype=intr.dtype, device=intr.device),
+        indexing="ij",
+    )
+    u, v = u.reshape(1, -1), v.reshape(1, -1)
+    fx, fy, cx, cy = (intr[:, k : k + 1] for k in range(4))
+    rays = ((u - cx) / fx, (v - cy) / fy)
+    if not intr.requires_grad:
+        if len(_RAYS) >= _RAYS_MAX:
+            _RAYS.pop(next(iter(_RAYS)))
+        _RAYS[key] = rays
+    return rays
 
 
 def sample_grey(
@@ -136,16 +170,22 @@ def sample_grey(
     if intr.dim() == 1:
         intr = intr[None].expand(B, 4)
     check_shape(intr, "B 4", "intrinsics", dims)
-    x, y, z = _rotate_planar(points, rotation.to(points.dtype)).unbind(1)  # (B, N) each
+    # Rotation, pinhole projection and grid_sample's normalised coordinates in one 3x3 map:
+    # gx = (2u + 1) / W - 1 with u = fx x / z + cx, i.e. the rows of S K R applied to p, over z.
+    # The third row of S K is (0, 0, 1), so n[:, 2] is the rotated z itself.
+    S = torch.zeros(B, 3, 3, dtype=points.dtype, device=points.device)
+    S[:, 0, 0] = 2 * intr[:, 0] / W
+    S[:, 0, 2] = (2 * intr[:, 2] + 1) / W - 1
+    S[:, 1, 1] = 2 * intr[:, 1] / H
+    S[:, 1, 2] = (2 * intr[:, 3] + 1) / H - 1
+    S[:, 2, 2] = 1
+    n = _rotate_planar(points, S @ rotation.to(points.dtype))  # (B, 3, N)
+    z = n[:, 2:3]
     front = z > 0
-    z_safe = torch.where(front, z, 1.0)
-    u = intr[:, 0:1] * x / z_safe + intr[:, 2:3]  # pixel coordinates, centres at integers
-    v = intr[:, 1:2] * y / z_safe + intr[:, 3:4]
-    inside = front & (u >= -0.5)
-    inside &= u <= W - 0.5
-    inside &= v >= -0.5
-    inside &= v <= H - 0.5
-    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], dim=-1).view(B, H, W, 2)
+    g = n[:, :2] / torch.where(front, z, 1.0)  # (B, 2, N) normalised image coordinates
+    # u in [-0.5, W - 0.5] and v in [-0.5, H - 0.5] are |g| <= 1.
+    inside = (front & (g.abs() <= 1)).all(dim=1)  # (B, N)
+    grid = g.transpose(1, 2).reshape(B, H, W, 2)
     if grey_image is None:
         grey_image = grey_from_rgb(rgb)
     else:
