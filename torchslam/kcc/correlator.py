@@ -531,6 +531,10 @@ def _refine_fourier(
         t_new = t0 + (t + step - t0).clamp(-1.0, 1.0)
         step_norm = (t_new - t).abs().amax(dim=1)
         t = t_new
+        if not bool((step_norm > 0).any()):
+            # Every item sits exactly on a fixed point: the remaining iterations would recompute
+            # the same t (and ok) bit for bit. In float32 Newton gets there in ~3 steps.
+            break
     d = t - t0
     ok = ok & (step_norm < 1e-3) & (d.abs().amax(dim=1) < 1.0)
     off_xy = d.flip(1)  # (B, 2) (x, y)
