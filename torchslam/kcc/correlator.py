@@ -229,14 +229,16 @@ def _wrap(i: Tensor, n: int) -> Tensor:
 def _box_sum(x: Tensor, k: int) -> Tensor:
     """Sum over the k x k window centred on each pixel of (B, C, H, W) images, zero outside (separable)."""
     H, W = x.shape[-2:]
+    if k == 1:
+        return x.clone()
     h = k // 2
     xp = F.pad(x, (h, h, 0, 0))
-    rows = xp[..., 0:W].clone()
-    for i in range(1, k):  # k is a small window side, not a pixel count
+    rows = xp[..., 0:W] + xp[..., 1 : 1 + W]
+    for i in range(2, k):  # k is a small window side, not a pixel count
         rows += xp[..., i : i + W]
     rp = F.pad(rows, (0, 0, h, h))
-    out = rp[..., 0:H, :].clone()
-    for i in range(1, k):
+    out = rp[..., 0:H, :] + rp[..., 1 : 1 + H, :]
+    for i in range(2, k):
         out += rp[..., i : i + H, :]
     return out
 
