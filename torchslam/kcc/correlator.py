@@ -498,16 +498,33 @@ def _refine_quadratic(g: Tensor, row: Tensor, col: Tensor) -> tuple[Tensor, Tens
     return torch.where(ok[:, None], off_xy, torch.zeros_like(off_xy)), ok
 
 
+_FOURIER_TABLES: dict[tuple, tuple[Tensor, Tensor, Tensor]] = {}
+
+
+def _fourier_tables(H: int, W: int, smoothing: float, dtype: torch.dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+    """Angular frequencies (H,), (W//2+1,) and the (H, W//2+1) Gaussian-smoothing, Parseval and
+    1/(HW) factor of the interpolant, cached per size (they depend on nothing else)."""
+    key = (H, W, float(smoothing), dtype, torch.device(device))
+    hit = _FOURIER_TABLES.get(key)
+    if hit is not None:
+        return hit
+    fy = torch.fft.fftfreq(H, dtype=dtype, device=device)
+    fx = torch.fft.rfftfreq(W, dtype=dtype, device=device)
+    damp = torch.exp(-2 * math.pi**2 * smoothing**2 * (fy[:, None].square() + fx[None, :].square()))
+    tables = (2 * math.pi * fy, 2 * math.pi * fx, damp * _half_weights(W, damp)[None, :] / (H * W))
+    if len(_FOURIER_TABLES) >= 8:
+        _FOURIER_TABLES.pop(next(iter(_FOURIER_TABLES)))
+    _FOURIER_TABLES[key] = tables
+    return tables
+
+
 def _refine_fourier(
     g_hat: Tensor, H: int, W: int, row: Tensor, col: Tensor, smoothing: float, iterations: int
 ) -> tuple[Tensor, Tensor]:
     """Newton ascent on the Gaussian-smoothed trigonometric interpolant of g around the integer peak."""
     real = g_hat.real.dtype
-    fy = torch.fft.fftfreq(H, dtype=real, device=g_hat.device)
-    fx = torch.fft.rfftfreq(W, dtype=real, device=g_hat.device)
-    wy, wx = 2 * math.pi * fy, 2 * math.pi * fx  # radians per pixel
-    damp = torch.exp(-2 * math.pi**2 * smoothing**2 * (fy[:, None].square() + fx[None, :].square()))
-    G = g_hat * (damp * _half_weights(W, damp)[None, :] / (H * W))  # (B, H, W//2+1)
+    wy, wx, factor = _fourier_tables(H, W, smoothing, real, g_hat.device)
+    G = g_hat * factor  # (B, H, W//2+1)
     t0 = torch.stack([row, col], dim=1).to(real)  # (B, 2) (y, x)
     t = t0
     ok = torch.ones(row.shape, dtype=torch.bool, device=row.device)
