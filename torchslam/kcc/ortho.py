@@ -302,6 +302,20 @@ def choose_resolution(
     return torch.where(n > 0, r, torch.full_like(r, math.nan))
 
 
+_POINT_IDS: dict[tuple, Tensor] = {}
+
+
+def _point_ids(n: int, device) -> Tensor:
+    """``arange(n)`` as int64, kept per (n, device): the z-buffer keys need it for every frame."""
+    key = (n, torch.device(device))
+    ids = _POINT_IDS.get(key)
+    if ids is None:
+        if len(_POINT_IDS) >= 8:
+            _POINT_IDS.pop(next(iter(_POINT_IDS)))
+        ids = _POINT_IDS[key] = torch.arange(n, device=device)
+    return ids
+
+
 def orthographic_project(
     points: Tensor,
     grey: Tensor,
@@ -377,7 +391,7 @@ def orthographic_project(
     # per-pixel minimum key is the nearest point, ties going to the lowest index.
     bits = z.detach().to(torch.float32).contiguous().view(torch.int32)
     zkey = (bits ^ ((bits >> 31) & 0x7FFFFFFF)).flatten().to(torch.int64)  # monotonic in z
-    key = zkey.bitwise_left_shift_(32).bitwise_or_(torch.arange(B * N, device=q.device))
+    key = zkey.bitwise_left_shift_(32).bitwise_or_(_point_ids(B * N, q.device))
     empty = torch.iinfo(torch.int64).max
     best = torch.full((trash + 1,), empty, dtype=torch.int64, device=q.device)
     best = best.scatter_reduce_(0, flat, key, reduce="amin", include_self=True)[:trash]  # (B*H*W,)
