@@ -175,7 +175,7 @@ def bench_optimize(ns: list[int], repeat: int, device: str = "cpu", threads: int
             optimize(T0, pairs, stats, config=cfg)
             gpu_mem = (torch.cuda.max_memory_allocated() - base) / 2**20
         work = _prepare([FastGOProblem(P.T_init, P.pairs, P.stats)], cfg)
-        sym = analyze(N, work.pairs[:, 0], work.pairs[:, 1], work.fixed, 6, cfg.leaf_size)
+        sym = analyze(N, work.pairs[:, 0], work.pairs[:, 1], work.fixed, 6, cfg.leaf_size, cfg.ordering)
         rows.append({
             "keyframes": N, "pairs": int(pairs.shape[0]), "device": device, "time_ms": t["median_s"] * 1e3,
             "best_ms": t["best_s"] * 1e3, "iterations": res.iterations, "converged": res.converged,
@@ -213,8 +213,8 @@ def bench_solvers(ns: list[int], repeat: int, dense_max: int) -> list[dict]:
         rhs = -g
         free = ~work.fixed
         row = {"keyframes": N, "pairs": int(work.pairs.shape[0])}
-        sym_t = _time(lambda: analyze(N, H.rows, H.cols, work.fixed, 6, cfg.leaf_size), repeat)
-        sym = analyze(N, H.rows, H.cols, work.fixed, 6, cfg.leaf_size)
+        sym_t = _time(lambda: analyze(N, H.rows, H.cols, work.fixed, 6, cfg.leaf_size, cfg.ordering), repeat)
+        sym = analyze(N, H.rows, H.cols, work.fixed, 6, cfg.leaf_size, cfg.ordering)
         num_t = _time(lambda: block_cholesky(H, sym).solve(rhs), repeat)
         x_ref = block_cholesky(H, sym).solve(rhs)
         row.update(block_analyze_ms=sym_t["median_s"] * 1e3, block_factor_solve_ms=num_t["median_s"] * 1e3)

@@ -43,14 +43,15 @@ def dense_reference(A: BlockSparseMatrix, rhs: torch.Tensor, fixed: torch.Tensor
     return x.reshape(rhs.shape)
 
 
-@pytest.mark.parametrize("n,loops,leaf", [(5, 2, 48), (120, 30, 8), (300, 60, 16)])
-def test_cholesky_matches_dense(n, loops, leaf):
+@pytest.mark.parametrize("ordering", ["band", "nested"])
+@pytest.mark.parametrize("n,loops,leaf", [(5, 2, 48), (120, 30, 8), (300, 60, 16), (80, 20, 1)])
+def test_cholesky_matches_dense(n, loops, leaf, ordering):
     g = torch.Generator().manual_seed(n)
     A = random_system(n, chain_with_loops(n, g, loops), g)
     rhs = torch.randn(n, 6, generator=g, dtype=torch.float64)
     fixed = torch.zeros(n, dtype=torch.bool)
     fixed[0] = True
-    sym = analyze(n, A.rows, A.cols, fixed, leaf_size=leaf)
+    sym = analyze(n, A.rows, A.cols, fixed, leaf_size=leaf, ordering=ordering)
     fac = block_cholesky(A, sym)
     x = fac.solve(rhs)
     ref = dense_reference(A, rhs, fixed)
@@ -95,6 +96,33 @@ def test_dense_and_pcg_methods_match_cholesky():
     assert torch.allclose(xp, ref, atol=1e-7)
     x, conv, its = pcg_block_jacobi(A, rhs, fixed, tol=1e-12, max_iter=5000)
     assert bool(conv) and its > 1 and torch.all(x[3] == 0)
+
+
+@pytest.mark.parametrize("leaf", [1, 3, 16])
+def test_band_order_keeps_components_apart(leaf):
+    # three chains with loops, an isolated node and a fixed node in the middle of one chain;
+    # the band order must match dense LAPACK and never put two components in one supernode
+    g = torch.Generator().manual_seed(leaf)
+    parts, off = [], 0
+    for n in (23, 1, 40, 9):
+        if n > 1:
+            parts.append(chain_with_loops(n, g, n // 3) + off)
+        off += n
+    edges = torch.cat(parts)
+    n = off
+    A = random_system(n, edges, g)
+    rhs = torch.randn(n, 6, generator=g, dtype=torch.float64)
+    fixed = torch.zeros(n, dtype=torch.bool)
+    fixed[[0, 40]] = True
+    sym = analyze(n, A.rows, A.cols, fixed, leaf_size=leaf, ordering="band")
+    fac = block_cholesky(A, sym)
+    ref = dense_reference(A, rhs, fixed)
+    assert fac.ok.all()
+    assert torch.allclose(fac.solve(rhs), ref, rtol=0, atol=1e-9 * ref.abs().max())
+    comp = torch.repeat_interleave(torch.arange(4), torch.tensor([23, 1, 40, 9]))
+    for s_dofs in sym._s_dofs:
+        assert comp[torch.as_tensor(s_dofs) // 6].unique().numel() == 1
+    assert all(s <= leaf for s, _ in sym.front_sizes)
 
 
 def test_batched_concatenation_equals_per_problem():
@@ -156,6 +184,10 @@ def test_bad_inputs_raise():
         solve_block_sparse(A, torch.zeros(4, 6, dtype=torch.float64), method="qr")
     with pytest.raises(ShapeError, match="rows/cols"):
         analyze(3, torch.tensor([0, 5]), torch.tensor([1, 2]))
+    with pytest.raises(ConfigError, match="ordering"):
+        analyze(4, A.rows, A.cols, ordering="amd")
+    with pytest.raises(ConfigError, match="leaf_size"):
+        analyze(4, A.rows, A.cols, leaf_size=0)
     with pytest.raises(ShapeError, match="off"):
         BlockSparseMatrix(A.diag, A.off[:, :3], A.rows, A.cols)
     sym = analyze(4, A.rows[:1], A.cols[:1])

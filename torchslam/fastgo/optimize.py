@@ -77,6 +77,8 @@ class FastGOConfig:
         damping: initial Levenberg-Marquardt factor (0: start as pure Gauss-Newton).
         solver: linear solver, a :class:`~torchslam.optim.SolverMethod` or its name.
         leaf_size: supernode size of the sparse Cholesky analysis, in keyframes.
+        ordering: fill-reducing order of the sparse Cholesky, ``"band"`` (reverse
+            Cuthill-McKee, suits route-like graphs) or ``"nested"`` (nested dissection).
         line_search: extend accepted steps along their direction when the cost keeps falling
             (see :class:`~torchslam.optim.LMConfig`).
         newton: near the optimum, add the residual curvature of the exponential map (also
@@ -99,7 +101,8 @@ class FastGOConfig:
     step_tol: float = 1e-10
     damping: float = 1e-6
     solver: SolverMethod | str = SolverMethod.AUTO
-    leaf_size: int = 48
+    leaf_size: int = 16
+    ordering: str = "band"
     line_search: bool = True
     newton: bool = True
     robust: RobustKernel | str = RobustKernel.L2
@@ -123,7 +126,7 @@ class FastGOConfig:
         """The Levenberg-Marquardt settings of one round."""
         return LMConfig(
             iterations=self.iterations, tol=self.tol, step_tol=self.step_tol, damping=self.damping,
-            solver=self.solver, leaf_size=self.leaf_size, line_search=self.line_search, newton=self.newton,
+            solver=self.solver, leaf_size=self.leaf_size, ordering=self.ordering, line_search=self.line_search, newton=self.newton,
         )
 
 
@@ -424,7 +427,7 @@ def _run(work: _Work, config: FastGOConfig):
         if symbolic is None and lm_cfg.solver in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
             from ..optim.blocksparse import analyze
 
-            symbolic = analyze(N, pairs[:, 0], pairs[:, 1], work.fixed, 6, config.leaf_size)
+            symbolic = analyze(N, pairs[:, 0], pairs[:, 1], work.fixed, 6, config.leaf_size, config.ordering)
         res = levenberg_marquardt_se3(T, work.node_problem, B, lin, evaluate, work.fixed, lm_cfg, symbolic)
         T = res.T
         histories.append(res.cost if rnd == 0 else res.cost[:, 1:])

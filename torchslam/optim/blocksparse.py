@@ -12,9 +12,9 @@ factorisation never mixes them.
 
 Solvers (:class:`SolverMethod`):
 
-* ``CHOLESKY`` — block-sparse supernodal Cholesky. A fill-reducing nested-dissection order is
-  computed once per sparsity pattern on the host (:func:`analyze`, breadth-first level-set
-  separators); the numeric factorisation is multifrontal, one dense ``torch.linalg.cholesky_ex``
+* ``CHOLESKY`` — block-sparse supernodal Cholesky. A fill-reducing order (reverse
+  Cuthill-McKee band or nested dissection) is computed once per sparsity pattern on the host
+  (:func:`analyze`); the numeric factorisation is multifrontal, one dense ``torch.linalg.cholesky_ex``
   per supernode, so it runs on any device and is differentiable by autograd.
 * ``DENSE`` — assemble the full ``bN x bN`` matrix and factor it (small systems, reference).
 * ``PCG`` — block-Jacobi preconditioned conjugate gradients, matrix-free (accelerators, large
@@ -289,55 +289,66 @@ def _bisect(A_sub) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     return np.nonzero(sep)[0], np.nonzero(side_a)[0], np.nonzero(side_b)[0]
 
 
-def analyze(
-    num_nodes: int,
-    rows: Tensor | np.ndarray,
-    cols: Tensor | np.ndarray,
-    fixed: Tensor | np.ndarray | None = None,
-    block_size: int = 6,
-    leaf_size: int = 48,
-) -> BlockCholeskySymbolic:
-    """Compute a fill-reducing order and the supernodal structure of a block pattern.
+def _band_supernodes(A, size: int) -> tuple[list[np.ndarray], list[int], list[np.ndarray]]:
+    """Supernodes of ``size`` consecutive nodes of a reverse Cuthill-McKee (band) order.
 
-    Nested dissection: each connected part larger than ``leaf_size`` nodes is split by a
-    breadth-first level set from a pseudo-peripheral node; the separator becomes a supernode
-    eliminated after both halves. Connected parts of at most ``leaf_size`` nodes are dense leaf
-    supernodes; separate components never share one.
-
-    Args:
-        num_nodes: N, block rows.
-        rows: (E,) block-row indices of the off-diagonal blocks.
-        cols: (E,) block-column indices.
-        fixed: optional (N,) bool mask of nodes removed from the system.
-        block_size: b.
-        leaf_size: largest supernode grown without dissection, in nodes.
+    Pose graphs that follow a route have a narrow profile in this order, so a run of
+    consecutive nodes shares almost all of its update set and the fronts stay small without
+    treating large sparse leaves as dense. The parent of a supernode is the one holding the
+    first node of its update set (the elimination tree of the chunked order); connected
+    components never share a supernode.
 
     Returns:
-        The symbolic structure, reusable while the pattern stays the same.
+        Supernode node lists, parent supernode (-1 for roots) and update sets ``U_t`` (node ids
+        sorted by elimination rank).
     """
+    from scipy.sparse.csgraph import connected_components, reverse_cuthill_mckee
+
+    nf = A.shape[0]
+    if nf == 0:
+        return [], [], []
+    perm = np.asarray(reverse_cuthill_mckee(A, symmetric_mode=True), dtype=np.int64)
+    ncomp, labels = connected_components(A, directed=False)
+    perm = perm[np.argsort(labels[perm], kind="stable")]
+    comp_bounds = np.searchsorted(labels[perm], np.arange(ncomp + 1))
+    sizes = np.diff(comp_bounds)
+    counts = -(-sizes // size)
+    # chunk boundaries: every component split into runs of at most `size` nodes
+    starts = np.repeat(comp_bounds[:-1], counts) + size * (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+    bounds = np.append(starts, nf)
+    nsn = starts.size
+    rank = np.empty(nf, dtype=np.int64)
+    rank[perm] = np.arange(nf)
+    chunk_of = np.repeat(np.arange(nsn), np.diff(bounds))
+    # off-diagonal pattern in rank space, grouped by the chunk of the row and cut to later ranks
+    coo = A.tocoo()
+    ri, ci = rank[coo.row], rank[coo.col]
+    later = ci >= bounds[chunk_of[ri] + 1]
+    own_c, own_r = chunk_of[ri[later]], ci[later]
+    order = np.argsort(own_c, kind="stable")
+    own_c, own_r = own_c[order], own_r[order]
+    ob = np.searchsorted(own_c, np.arange(nsn + 1))
+    kids: list[list[int]] = [[] for _ in range(nsn)]
+    parent = [-1] * nsn
+    U_rank: list[np.ndarray] = [None] * nsn  # type: ignore[list-item]
+    for t in range(nsn):
+        end = bounds[t + 1]
+        parts = [own_r[ob[t]:ob[t + 1]]] + [U_rank[c][U_rank[c] >= end] for c in kids[t]]
+        u = np.unique(np.concatenate(parts))
+        U_rank[t] = u
+        if u.size:
+            p = int(chunk_of[u[0]])
+            parent[t] = p
+            kids[p].append(t)
+    sn_nodes = [perm[bounds[t]:bounds[t + 1]] for t in range(nsn)]
+    return sn_nodes, parent, [perm[u] for u in U_rank]
+
+
+def _dissect(A, leaf_size: int) -> tuple[list[np.ndarray], list[int]]:
+    """Nested dissection of the adjacency ``A`` into supernodes and their parents."""
     from scipy.sparse.csgraph import connected_components
 
-    rows_np = np.asarray(rows.detach().cpu() if isinstance(rows, Tensor) else rows, dtype=np.int64)
-    cols_np = np.asarray(cols.detach().cpu() if isinstance(cols, Tensor) else cols, dtype=np.int64)
-    if rows_np.shape != cols_np.shape or rows_np.ndim != 1:
-        raise ShapeError(f"rows/cols: expected two (E,) arrays, got {rows_np.shape} and {cols_np.shape}")
-    if rows_np.size and (min(rows_np.min(), cols_np.min()) < 0 or max(rows_np.max(), cols_np.max()) >= num_nodes):
-        raise ShapeError(f"rows/cols: block indices must lie in [0, {num_nodes})")
-    free = np.ones(num_nodes, dtype=bool)
-    if fixed is not None:
-        f = np.asarray(fixed.detach().cpu() if isinstance(fixed, Tensor) else fixed, dtype=bool)
-        if f.shape != (num_nodes,):
-            raise ShapeError(f"fixed: expected ({num_nodes},), got {f.shape}")
-        free &= ~f
-    b = block_size
-    free_ids = np.nonzero(free)[0]
-    nf = free_ids.size
-    new_id = np.full(num_nodes, -1, dtype=np.int64)
-    new_id[free_ids] = np.arange(nf)
-    edge_keep = free[rows_np] & free[cols_np] & (rows_np != cols_np)
-    er, ec = new_id[rows_np[edge_keep]], new_id[cols_np[edge_keep]]
-    A = _adjacency(nf, er, ec)
-
+    nf = A.shape[0]
     # --- nested dissection into a forest of supernodes --------------------------------------
     sn_nodes: list[np.ndarray] = []
     sn_parent: list[int] = []
@@ -371,6 +382,73 @@ def analyze(
             stack.append((comp[side_a], me))
             stack.append((comp[side_b], me))
 
+    return sn_nodes, sn_parent
+
+
+def analyze(
+    num_nodes: int,
+    rows: Tensor | np.ndarray,
+    cols: Tensor | np.ndarray,
+    fixed: Tensor | np.ndarray | None = None,
+    block_size: int = 6,
+    leaf_size: int = 16,
+    ordering: str = "band",
+) -> BlockCholeskySymbolic:
+    """Compute a fill-reducing order and the supernodal structure of a block pattern.
+
+    ``"band"`` (default): reverse Cuthill-McKee order cut into supernodes of ``leaf_size``
+    consecutive nodes. Pose graphs along a route (odometry chain plus loops to nearby
+    keyframes) keep a narrow profile in this order; on the FastGO benchmark graphs its factor
+    needs about 25 % fewer flops than nested dissection, with a cheaper analysis.
+    ``"nested"``: nested dissection; each connected part larger than ``leaf_size`` nodes is
+    split by a breadth-first level set from a pseudo-peripheral node; the separator becomes a
+    supernode eliminated after both halves. Connected parts of at most ``leaf_size`` nodes are
+    dense leaf supernodes (suits mesh-like graphs with a wide profile).
+    Separate components never share a supernode in either order.
+
+    Args:
+        num_nodes: N, block rows.
+        rows: (E,) block-row indices of the off-diagonal blocks.
+        cols: (E,) block-column indices.
+        fixed: optional (N,) bool mask of nodes removed from the system.
+        block_size: b.
+        leaf_size: supernode size in nodes (``"band"``), or the largest part left without
+            dissection (``"nested"``).
+        ordering: ``"band"`` or ``"nested"``.
+
+    Returns:
+        The symbolic structure, reusable while the pattern stays the same.
+    """
+    rows_np = np.asarray(rows.detach().cpu() if isinstance(rows, Tensor) else rows, dtype=np.int64)
+    cols_np = np.asarray(cols.detach().cpu() if isinstance(cols, Tensor) else cols, dtype=np.int64)
+    if rows_np.shape != cols_np.shape or rows_np.ndim != 1:
+        raise ShapeError(f"rows/cols: expected two (E,) arrays, got {rows_np.shape} and {cols_np.shape}")
+    if rows_np.size and (min(rows_np.min(), cols_np.min()) < 0 or max(rows_np.max(), cols_np.max()) >= num_nodes):
+        raise ShapeError(f"rows/cols: block indices must lie in [0, {num_nodes})")
+    if ordering not in ("band", "nested"):
+        raise ConfigError(f"ordering: expected 'band' or 'nested', got {ordering!r}")
+    if leaf_size < 1:
+        raise ConfigError(f"leaf_size: expected >= 1 nodes, got {leaf_size}")
+    free = np.ones(num_nodes, dtype=bool)
+    if fixed is not None:
+        f = np.asarray(fixed.detach().cpu() if isinstance(fixed, Tensor) else fixed, dtype=bool)
+        if f.shape != (num_nodes,):
+            raise ShapeError(f"fixed: expected ({num_nodes},), got {f.shape}")
+        free &= ~f
+    b = block_size
+    free_ids = np.nonzero(free)[0]
+    nf = free_ids.size
+    new_id = np.full(num_nodes, -1, dtype=np.int64)
+    new_id[free_ids] = np.arange(nf)
+    edge_keep = free[rows_np] & free[cols_np] & (rows_np != cols_np)
+    er, ec = new_id[rows_np[edge_keep]], new_id[cols_np[edge_keep]]
+    A = _adjacency(nf, er, ec)
+
+    if ordering == "band":
+        sn_nodes, sn_parent, U_band = _band_supernodes(A, leaf_size)
+    else:
+        sn_nodes, sn_parent = _dissect(A, leaf_size)
+        U_band = None
     ns = len(sn_nodes)
     children: list[list[int]] = [[] for _ in range(ns)]
     for t, p in enumerate(sn_parent):
@@ -400,14 +478,17 @@ def analyze(
 
     # --- supernodal structure: U_t = (adj(S_t) U children's U) with rank beyond S_t ----------
     indptr, indices = A.indptr, A.indices
-    U: list[np.ndarray] = [np.empty(0, dtype=np.int64)] * ns
-    for t in post:
-        S = sn_nodes[t]
-        nbr = np.concatenate([indices[indptr[v]:indptr[v + 1]] for v in S] + [U[c] for c in children[t]])
-        nbr = np.unique(nbr)
-        last = rank[S].max()
-        Ut = nbr[rank[nbr] > last]
-        U[t] = Ut[np.argsort(rank[Ut])]
+    if U_band is not None:
+        U = U_band
+    else:
+        U = [np.empty(0, dtype=np.int64)] * ns
+        for t in post:
+            S = sn_nodes[t]
+            nbr = np.concatenate([indices[indptr[v]:indptr[v + 1]] for v in S] + [U[c] for c in children[t]])
+            nbr = np.unique(nbr)
+            last = rank[S].max()
+            Ut = nbr[rank[nbr] > last]
+            U[t] = Ut[np.argsort(rank[Ut])]
 
     # --- element maps: original entries and children's updates into each front --------------
     # Original entries are the concatenation [diag blocks (N), off (E), off^T (E)], flattened

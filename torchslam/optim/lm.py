@@ -54,6 +54,8 @@ class LMConfig:
         damping_max: a problem whose ``lambda`` exceeds this stops, not converged.
         solver: linear solver (:class:`SolverMethod` or its name).
         leaf_size: supernode size of the sparse Cholesky analysis, in poses.
+        ordering: fill-reducing order of the sparse Cholesky, ``"band"`` or ``"nested"`` (see
+            :func:`~torchslam.optim.blocksparse.analyze`).
         line_search: after an accepted step, also try the minimiser of the 1-D quadratic
             through the cost, its exact slope and the step's cost (only step lengths > 1, up to
             ``max_step_scale``); speeds up the slow linear phase on soft modes of large graphs.
@@ -74,7 +76,8 @@ class LMConfig:
     damping_down: float = 0.1
     damping_max: float = 1e8
     solver: SolverMethod | str = SolverMethod.AUTO
-    leaf_size: int = 48
+    leaf_size: int = 16
+    ordering: str = "band"
     line_search: bool = True
     max_step_scale: float = 8.0
     newton: bool = True
@@ -150,7 +153,7 @@ def levenberg_marquardt_se3(
     dev, dt = T.device, T.dtype
     H, g, cost, S = _unpack(linearize(T))
     if symbolic is None and config.solver in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
-        symbolic = analyze(H.num_nodes, H.rows, H.cols, fixed, H.block_size, config.leaf_size)
+        symbolic = analyze(H.num_nodes, H.rows, H.cols, fixed, H.block_size, config.leaf_size, config.ordering)
     lam = torch.full((B,), config.damping, dtype=dt, device=dev)
     active = torch.ones(B, dtype=torch.bool, device=dev)
     converged = torch.zeros(B, dtype=torch.bool, device=dev)
