@@ -203,6 +203,7 @@ class BlockCholeskySymbolic:
     _parent: np.ndarray = field(repr=False)
     _entry_src: list = field(repr=False)
     _entry_dst: list = field(repr=False)
+    _entry_lower: list = field(repr=False)
     _child_dst: list = field(repr=False)
     _node_front: np.ndarray = field(repr=False)
     _num_edges: int = field(repr=False)
@@ -220,6 +221,13 @@ class BlockCholeskySymbolic:
                 "s": [t(a) for a in self._s_dofs],
                 "u": [t(a) for a in self._u_dofs],
                 "src": [t(a) for a in self._entry_src],
+                "src_all": t(np.concatenate(self._entry_src)) if self._entry_src else t(np.zeros(0)),
+                "src_bounds": np.cumsum([0] + [a.size for a in self._entry_src]).tolist(),
+                # lower-triangle entries only: what the factorisation reads (fast path)
+                "lo_all": t(np.concatenate([a[lo] for a, lo in zip(self._entry_src, self._entry_lower)]))
+                if self._entry_src else t(np.zeros(0)),
+                "lo_bounds": np.cumsum([0] + [int(lo.sum()) for lo in self._entry_lower]).tolist(),
+                "dst_lo": [t(a[lo]) for a, lo in zip(self._entry_dst, self._entry_lower)],
                 "dst": [t(a) for a in self._entry_dst],
                 "child": [[t(a) for a in lst] for lst in self._child_dst],
                 "node_front": t(self._node_front),
@@ -509,7 +517,7 @@ def analyze(
 
     local = np.full(nf, -1, dtype=np.int64)
     bi = np.arange(b)
-    s_dofs, u_dofs, entry_src, entry_dst, child_dst, kids, sizes = [], [], [], [], [], [], []
+    s_dofs, u_dofs, entry_src, entry_dst, entry_lower, child_dst, kids, sizes = [], [], [], [], [], [], [], []
     nnz = 0
     for k, t in enumerate(post):
         S, Ut = sn_nodes[t], U[t]
@@ -524,6 +532,7 @@ def analyze(
         dst = ((lr[:, None, None] * b + bi[None, :, None]) * nb + lc[:, None, None] * b + bi[None, None, :]).ravel()
         entry_src.append(src)
         entry_dst.append(dst)
+        entry_lower.append(dst // nb >= dst % nb)
         cd = []
         for c in children[t]:
             uc = local[U[c]] * b
@@ -552,6 +561,7 @@ def analyze(
         _parent=parent_pos,
         _entry_src=entry_src,
         _entry_dst=entry_dst,
+        _entry_lower=entry_lower,
         _child_dst=child_dst,
         _node_front=nf_full,
         _num_edges=e_all,
@@ -635,6 +645,18 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     idx = sym.tensors(dev)
     b = sym.block_size
     values = torch.cat([matrix.diag, matrix.off, matrix.off.transpose(-1, -2)]).reshape(-1)
+    # Without autograd, fronts are assembled in one reused workspace (no fresh pages per front)
+    # and only their lower triangles are filled and updated: Cholesky, the off-diagonal solve
+    # and the parents read nothing else. With autograd, whole fronts are built out of place so
+    # that every entry (both triangles) receives its gradient.
+    grad = torch.is_grad_enabled() and (matrix.diag.requires_grad or matrix.off.requires_grad)
+    if grad:
+        values = values[idx["src_all"]]  # one gather of every front's entries, sliced below
+        vb, dsts = idx["src_bounds"], idx["dst"]
+    else:
+        values = values[idx["lo_all"]]
+        vb, dsts = idx["lo_bounds"], idx["dst_lo"]
+        workspace = values.new_empty(max([(s + u) * b for s, u in sym.front_sizes], default=0) ** 2)
     L_ss: list[Tensor] = []
     L_us: list[Tensor] = []
     infos: list[Tensor] = []
@@ -642,7 +664,8 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     for k in range(sym.num_fronts):
         ns, nu = sym.front_sizes[k]
         n = (ns + nu) * b
-        F = values.new_zeros(n * n).index_add_(0, idx["dst"][k], values[idx["src"][k]])
+        F = values.new_zeros(n * n) if grad else workspace[:n * n].zero_()
+        F.index_add_(0, dsts[k], values[vb[k]:vb[k + 1]])
         for c, dst in zip(sym._children[k], idx["child"][k]):
             F.index_add_(0, dst, updates[c].reshape(-1))
             updates[c] = None
@@ -654,7 +677,15 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
         if nu:
             Lu = torch.linalg.solve_triangular(L.transpose(0, 1), F[m:, :m], upper=True, left=False)  # X L^T = F_US
             L_us.append(Lu)
-            updates[k] = torch.addmm(F[m:, m:], Lu, Lu.transpose(0, 1), alpha=-1)
+            if grad:
+                updates[k] = torch.addmm(F[m:, m:], Lu, Lu.transpose(0, 1), alpha=-1)
+            else:
+                # Schur complement, lower triangle by row bands: 3/4 of the full product's flops
+                upd = F[m:, m:].clone()
+                h = nu * b // 2
+                upd[:h, :h].addmm_(Lu[:h], Lu[:h].transpose(0, 1), alpha=-1)
+                upd[h:].addmm_(Lu[h:], Lu.transpose(0, 1), alpha=-1)
+                updates[k] = upd
         else:
             L_us.append(F.new_zeros(0, m))
     # A failed pivot (not positive definite) spoils its whole elimination tree: upwards through
