@@ -205,6 +205,7 @@ class BlockCholeskySymbolic:
     _entry_dst: list = field(repr=False)
     _entry_lower: list = field(repr=False)
     _child_dst: list = field(repr=False)
+    _direct: list = field(repr=False)
     _node_front: np.ndarray = field(repr=False)
     _num_edges: int = field(repr=False)
     _edge_keep: np.ndarray = field(repr=False)
@@ -518,6 +519,7 @@ def analyze(
     local = np.full(nf, -1, dtype=np.int64)
     bi = np.arange(b)
     s_dofs, u_dofs, entry_src, entry_dst, entry_lower, child_dst, kids, sizes = [], [], [], [], [], [], [], []
+    direct = [-1] * ns
     nnz = 0
     for k, t in enumerate(post):
         S, Ut = sn_nodes[t], U[t]
@@ -536,6 +538,9 @@ def analyze(
         cd = []
         for c in children[t]:
             uc = local[U[c]] * b
+            if pos_of[c] == k - 1 and uc.size and uc[-1] - uc[0] == (uc.size - 1) * b:
+                # the front just before lands on one diagonal block of this one (band orders)
+                direct[k - 1] = int(uc[0])
             ud = (uc[:, None] + bi[None, :]).ravel()
             cd.append((ud[:, None] * nb + ud[None, :]).ravel())
         child_dst.append(cd)
@@ -563,6 +568,7 @@ def analyze(
         _entry_dst=entry_dst,
         _entry_lower=entry_lower,
         _child_dst=child_dst,
+        _direct=direct,
         _node_front=nf_full,
         _num_edges=e_all,
         _edge_keep=edge_keep,
@@ -656,36 +662,54 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     else:
         values = values[idx["lo_all"]]
         vb, dsts = idx["lo_bounds"], idx["dst_lo"]
-        workspace = values.new_empty(max([(s + u) * b for s, u in sym.front_sizes], default=0) ** 2)
+        # two buffers: a front whose update lands on one diagonal block of the next front
+        # (``_direct``, the usual case in band orders) writes it there in place
+        size = max([(s + u) * b for s, u in sym.front_sizes], default=0) ** 2
+        buffers = (values.new_empty(size), values.new_empty(size))
     L_ss: list[Tensor] = []
     L_us: list[Tensor] = []
     infos: list[Tensor] = []
     updates: list[Tensor | None] = [None] * sym.num_fronts
+    started = False
     for k in range(sym.num_fronts):
         ns, nu = sym.front_sizes[k]
         n = (ns + nu) * b
-        F = values.new_zeros(n * n) if grad else workspace[:n * n].zero_()
+        if grad:
+            F = values.new_zeros(n * n)
+        elif started:
+            F = buffers[k % 2][:n * n]  # already holds the previous front's update
+        else:
+            F = buffers[k % 2][:n * n].zero_()
         F.index_add_(0, dsts[k], values[vb[k]:vb[k + 1]])
         for c, dst in zip(sym._children[k], idx["child"][k]):
-            F.index_add_(0, dst, updates[c].reshape(-1))
-            updates[c] = None
+            if updates[c] is not None:
+                F.index_add_(0, dst, updates[c].reshape(-1))
+                updates[c] = None
         F = F.reshape(n, n)
         m = ns * b
         L, info = torch.linalg.cholesky_ex(F[:m, :m])
         L_ss.append(L)
         infos.append(info)
+        started = False
         if nu:
             Lu = torch.linalg.solve_triangular(L.transpose(0, 1), F[m:, :m], upper=True, left=False)  # X L^T = F_US
             L_us.append(Lu)
             if grad:
                 updates[k] = torch.addmm(F[m:, m:], Lu, Lu.transpose(0, 1), alpha=-1)
+                continue
+            p0 = sym._direct[k]
+            if p0 >= 0:
+                n_p = sum(sym.front_sizes[k + 1]) * b
+                upd = buffers[(k + 1) % 2][:n_p * n_p].zero_().view(n_p, n_p)[p0:p0 + nu * b, p0:p0 + nu * b]
+                upd.copy_(F[m:, m:])
+                started = True
             else:
-                # Schur complement, lower triangle by row bands: 3/4 of the full product's flops
                 upd = F[m:, m:].clone()
-                h = nu * b // 2
-                upd[:h, :h].addmm_(Lu[:h], Lu[:h].transpose(0, 1), alpha=-1)
-                upd[h:].addmm_(Lu[h:], Lu.transpose(0, 1), alpha=-1)
                 updates[k] = upd
+            # Schur complement, lower triangle by row bands: 3/4 of the full product's flops
+            h = nu * b // 2
+            upd[:h, :h].addmm_(Lu[:h], Lu[:h].transpose(0, 1), alpha=-1)
+            upd[h:].addmm_(Lu[h:], Lu.transpose(0, 1), alpha=-1)
         else:
             L_us.append(F.new_zeros(0, m))
     # A failed pivot (not positive definite) spoils its whole elimination tree: upwards through
