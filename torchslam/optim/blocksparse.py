@@ -613,12 +613,12 @@ class BlockCholeskyFactor:
             zs = torch.linalg.solve_triangular(self._L_ss[k], y[idx["s"][k]][:, None], upper=False)
             z.append(zs)
             if idx["u"][k].numel():
-                y.index_add_(0, idx["u"][k], -(self._L_us[k] @ zs)[:, 0])
+                y.index_add_(0, idx["u"][k], (self._L_us[k] @ zs)[:, 0], alpha=-1)
         x = torch.zeros_like(y)
         for k in reversed(range(sym.num_fronts)):  # back substitution, parents first
             v = z[k]
             if idx["u"][k].numel():
-                v = v - self._L_us[k].transpose(0, 1) @ x[idx["u"][k]][:, None]
+                v = torch.addmm(v, self._L_us[k].transpose(0, 1), x[idx["u"][k]][:, None], alpha=-1)
             xs = torch.linalg.solve_triangular(self._L_ss[k].transpose(0, 1), v, upper=True)
             x.index_copy_(0, idx["s"][k], xs[:, 0])
         return x.reshape(rhs.shape)
