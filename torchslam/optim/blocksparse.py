@@ -204,7 +204,7 @@ class BlockCholeskySymbolic:
     _entry_src: list = field(repr=False)
     _entry_dst: list = field(repr=False)
     _entry_lower: list = field(repr=False)
-    _child_dst: list = field(repr=False)
+    _child_ud: list = field(repr=False)
     _direct: list = field(repr=False)
     _node_front: np.ndarray = field(repr=False)
     _num_edges: int = field(repr=False)
@@ -230,10 +230,30 @@ class BlockCholeskySymbolic:
                 "lo_bounds": np.cumsum([0] + [int(lo.sum()) for lo in self._entry_lower]).tolist(),
                 "dst_lo": [t(a[lo]) for a, lo in zip(self._entry_dst, self._entry_lower)],
                 "dst": [t(a) for a in self._entry_dst],
-                "child": [[t(a) for a in lst] for lst in self._child_dst],
+                # scatter maps of the children's updates into each front; updates written in
+                # place into the next front (``_direct``) need none on the no-autograd path
+                "child": [
+                    [None if self._direct[c] >= 0 else t(_square_map(*ud)) for c, ud in zip(kids, lst)]
+                    for kids, lst in zip(self._children, self._child_ud)
+                ],
                 "node_front": t(self._node_front),
             }
         return self._device_cache[key]
+
+    def child_maps(self, device: torch.device) -> list:
+        """Scatter maps of every child's update into its parent front (autograd path, cached)."""
+        key = "all:" + str(device)
+        if key not in self._device_cache:
+            self._device_cache[key] = [
+                [torch.as_tensor(_square_map(*ud), dtype=torch.int64, device=device) for ud in lst]
+                for lst in self._child_ud
+            ]
+        return self._device_cache[key]
+
+
+def _square_map(ud: np.ndarray, nb: int) -> np.ndarray:
+    """Flat positions in an ``nb x nb`` front of the ``ud x ud`` sub-matrix."""
+    return (ud[:, None] * nb + ud[None, :]).ravel()
 
 
 def _adjacency(n: int, rows: np.ndarray, cols: np.ndarray):
@@ -518,7 +538,10 @@ def analyze(
 
     local = np.full(nf, -1, dtype=np.int64)
     bi = np.arange(b)
-    s_dofs, u_dofs, entry_src, entry_dst, entry_lower, child_dst, kids, sizes = [], [], [], [], [], [], [], []
+    s_dofs, u_dofs, child_ud, kids, sizes = [], [], [], [], []
+    lr_all = np.empty(blk.size, dtype=np.int64)
+    lc_all = np.empty(blk.size, dtype=np.int64)
+    nb_all = np.empty(blk.size, dtype=np.int64)
     direct = [-1] * ns
     nnz = 0
     for k, t in enumerate(post):
@@ -527,29 +550,30 @@ def analyze(
         n_loc = idx.size
         local[idx] = np.arange(n_loc)
         nb = n_loc * b
-        # scalar entries of the blocks owned by this front
+        # block positions of the original blocks owned by this front
         sl = slice(obounds[k], obounds[k + 1])
-        lr, lc = local[br[sl]], local[bc[sl]]
-        src = (blk[sl, None, None] * (b * b) + bi[None, :, None] * b + bi[None, None, :]).ravel()
-        dst = ((lr[:, None, None] * b + bi[None, :, None]) * nb + lc[:, None, None] * b + bi[None, None, :]).ravel()
-        entry_src.append(src)
-        entry_dst.append(dst)
-        entry_lower.append(dst // nb >= dst % nb)
+        lr_all[sl], lc_all[sl], nb_all[sl] = local[br[sl]], local[bc[sl]], nb
         cd = []
         for c in children[t]:
             uc = local[U[c]] * b
             if pos_of[c] == k - 1 and uc.size and uc[-1] - uc[0] == (uc.size - 1) * b:
                 # the front just before lands on one diagonal block of this one (band orders)
                 direct[k - 1] = int(uc[0])
-            ud = (uc[:, None] + bi[None, :]).ravel()
-            cd.append((ud[:, None] * nb + ud[None, :]).ravel())
-        child_dst.append(cd)
+            cd.append(((uc[:, None] + bi[None, :]).ravel(), nb))
+        child_ud.append(cd)
         kids.append([int(pos_of[c]) for c in children[t]])
         s_dofs.append((free_ids[S][:, None] * b + bi[None, :]).ravel())
         u_dofs.append((free_ids[Ut][:, None] * b + bi[None, :]).ravel())
         sizes.append((int(S.size), int(Ut.size)))
         nnz += S.size * b * (S.size + Ut.size) * b
         local[idx] = -1
+    # scalar entries of all owned blocks at once, split per front below
+    src = (blk[:, None, None] * (b * b) + bi[None, :, None] * b + bi[None, None, :]).ravel()
+    row = (lr_all[:, None, None] * b + bi[None, :, None] + 0 * bi[None, None, :]).ravel()
+    col = (lc_all[:, None, None] * b + 0 * bi[None, :, None] + bi[None, None, :]).ravel()
+    dst = row * np.repeat(nb_all, b * b) + col
+    cut = obounds[1:-1] * (b * b)
+    entry_src, entry_dst, entry_lower = np.split(src, cut), np.split(dst, cut), np.split(row >= col, cut)
     parent_pos = np.array([pos_of[sn_parent[t]] if sn_parent[t] >= 0 else -1 for t in post], dtype=np.int64)
     nf_full = np.full(num_nodes, -1, dtype=np.int64)
     nf_full[free_ids] = node_front
@@ -567,7 +591,7 @@ def analyze(
         _entry_src=entry_src,
         _entry_dst=entry_dst,
         _entry_lower=entry_lower,
-        _child_dst=child_dst,
+        _child_ud=child_ud,
         _direct=direct,
         _node_front=nf_full,
         _num_edges=e_all,
@@ -656,6 +680,7 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     # and the parents read nothing else. With autograd, whole fronts are built out of place so
     # that every entry (both triangles) receives its gradient.
     grad = torch.is_grad_enabled() and (matrix.diag.requires_grad or matrix.off.requires_grad)
+    child = sym.child_maps(dev) if grad else idx["child"]
     if grad:
         values = values[idx["src_all"]]  # one gather of every front's entries, sliced below
         vb, dsts = idx["src_bounds"], idx["dst"]
@@ -681,7 +706,7 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
         else:
             F = buffers[k % 2][:n * n].zero_()
         F.index_add_(0, dsts[k], values[vb[k]:vb[k + 1]])
-        for c, dst in zip(sym._children[k], idx["child"][k]):
+        for c, dst in zip(sym._children[k], child[k]):
             if updates[c] is not None:
                 F.index_add_(0, dst, updates[c].reshape(-1))
                 updates[c] = None
