@@ -222,10 +222,11 @@ class BlockCholeskySymbolic:
                 "s": [t(a) for a in self._s_dofs],
                 "u": [t(a) for a in self._u_dofs],
                 "src": [t(a) for a in self._entry_src],
-                "src_all": t(np.concatenate(self._entry_src)) if self._entry_src else t(np.zeros(0)),
+                "src_all": t(self._untransposed(np.concatenate(self._entry_src)))
+                if self._entry_src else t(np.zeros(0)),
                 "src_bounds": np.cumsum([0] + [a.size for a in self._entry_src]).tolist(),
                 # lower-triangle entries only: what the factorisation reads (fast path)
-                "lo_all": t(np.concatenate([a[lo] for a, lo in zip(self._entry_src, self._entry_lower)]))
+                "lo_all": t(self._untransposed(np.concatenate([a[lo] for a, lo in zip(self._entry_src, self._entry_lower)])))
                 if self._entry_src else t(np.zeros(0)),
                 "lo_bounds": np.cumsum([0] + [int(lo.sum()) for lo in self._entry_lower]).tolist(),
                 "dst_lo": [t(a[lo]) for a, lo in zip(self._entry_dst, self._entry_lower)],
@@ -239,6 +240,21 @@ class BlockCholeskySymbolic:
                 "node_front": t(self._node_front),
             }
         return self._device_cache[key]
+
+    def _untransposed(self, src: np.ndarray) -> np.ndarray:
+        """Map entries of the transposed off-diagonal blocks onto the blocks themselves.
+
+        Entry maps index ``[diag (N), off (E), off^T (E)]``; the factorisation gathers from
+        ``[diag, off]`` only, so entry ``(i, j)`` of ``off^T[e]`` becomes ``(j, i)`` of ``off[e]``.
+        """
+        b2 = self.block_size ** 2
+        first = (self.num_nodes + self._num_edges) * b2
+        tr = src >= first
+        e, r = np.divmod(src[tr] - first, b2)
+        i, j = np.divmod(r, self.block_size)
+        src = src.copy()
+        src[tr] = (self.num_nodes + e) * b2 + j * self.block_size + i
+        return src
 
     def child_maps(self, device: torch.device) -> list:
         """Scatter maps of every child's update into its parent front (autograd path, cached)."""
@@ -674,7 +690,7 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     dev = matrix.diag.device
     idx = sym.tensors(dev)
     b = sym.block_size
-    values = torch.cat([matrix.diag, matrix.off, matrix.off.transpose(-1, -2)]).reshape(-1)
+    values = torch.cat([matrix.diag.reshape(-1), matrix.off.reshape(-1)])
     # Without autograd, fronts are assembled in one reused workspace (no fresh pages per front)
     # and only their lower triangles are filled and updated: Cholesky, the off-diagonal solve
     # and the parents read nothing else. With autograd, whole fronts are built out of place so
