@@ -188,7 +188,6 @@ def bench_optimize(ns: list[int], repeat: int, device: str = "cpu", threads: int
 
 def _scipy_splu(H, free):
     import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
 
     n, b = H.num_nodes, 6
     r = torch.cat([torch.arange(n), H.rows, H.cols])
