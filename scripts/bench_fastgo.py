@@ -31,7 +31,6 @@ import argparse
 import gc
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -46,18 +45,9 @@ from torchslam.fastgo.optimize import FastGOProblem, _prepare
 from torchslam.fastgo.synthetic import loop_route_problem
 from torchslam.geometry import se3_exp
 from torchslam.optim import analyze, block_cholesky, pcg_block_jacobi
+from torchslam.environment import cpu_model as _cpu_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _sync(device) -> None:

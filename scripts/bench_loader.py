@@ -28,6 +28,7 @@ import cv2
 import torch
 
 from torchslam.data import TUMSequence
+from torchslam.environment import cpu_model as _cpu_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SEQUENCES = ("tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs")
@@ -48,16 +49,6 @@ def _spin_gil(seconds: float) -> None:
 
 
 WORK = {"none": None, "spin": _spin_nogil, "spin-gil": _spin_gil}
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _one_pass(seq: TUMSequence, work, work_s: float) -> tuple[float, int]:

@@ -33,18 +33,9 @@ import torch
 from torchslam.data import TUMSequence
 from torchslam.features import ORBConfig, extract_orb, hamming_distance, match_descriptors
 from torchslam.loop import MILDConfig, MILDDatabase
+from torchslam.environment import cpu_model as _cpu_model
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _time(fn, repeat: int, sync=None) -> dict:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from torchslam.config import config_from_dict
 from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
+from torchslam.environment import environment_info
 from torchslam.eval import ate
 from torchslam.kcc import choose_resolution, kcc_features, kcc_train, keyframe_map, orthographic_project, rgbd_to_points
 from torchslam.slam import run_sequence
@@ -28,19 +28,6 @@ from torchslam.slam.nislam import NISlam, NISlamConfig, track_step
 
 PAPER_ATE_M = {"tum_fr1_xyz": 0.011}  # NI-SLAM Table 1 (ground-truth attitude on TUM)
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def machine() -> dict:
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "python": platform.python_version(), "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
 
 
 def accuracy(data_root: Path, quick: bool) -> list[dict]:
@@ -151,7 +138,7 @@ def main() -> None:
     root = Path(args.data)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = {"machine": machine(), "quick": args.quick}
+    result = {"machine": environment_info(), "quick": args.quick}
     print(f"machine: {result['machine']}")
     print("accuracy and frame rate per sequence:")
     result["accuracy"] = accuracy(root, args.quick)

@@ -14,7 +14,6 @@ import json
 import logging
 import math
 import os
-import platform
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -23,6 +22,7 @@ import torch
 
 from ..data.frame import Sequence
 from ..data.trajectory import Trajectory, write_tum_trajectory
+from ..environment import environment_info
 from .base import RunResult
 
 __all__ = ["write_run", "write_ply", "METRIC_KEYS"]
@@ -147,12 +147,7 @@ def write_run(
     metrics.update(o.metrics)
     if extra:
         metrics.update(extra)
-    metrics["environment"] = {
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
-    }
+    metrics["environment"] = environment_info()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n")
     return metrics
 
