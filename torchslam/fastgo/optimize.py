@@ -403,13 +403,19 @@ def _run(work: _Work, config: FastGOConfig):
         stats = work.stats if rnd == 0 else work.stats.weighted(robust_w)
 
         cen = _centred(stats, T.dtype)
+        if rnd == 0:
+            work.extra["centred"] = cen  # the unweighted statistics, reused by _rms
 
         def lin(T_: Tensor, stats=stats, cen=cen):
             out = _blocks(T_, pairs, stats, with_curvature=config.newton)
             (H_ii, H_ij, H_jj), g_i = out[0], out[1]
-            c = _pair_cost(T_, pairs, stats, cen)
-            H, g = assemble(PairLinearization(H_ii, H_ij, H_jj, g_i, -g_i, c), pairs, N)
-            cost = c.new_zeros(B).index_add(0, pp, c)
+            H, g = assemble(PairLinearization(H_ii, H_ij, H_jj, g_i, -g_i, g_i[:, 0]), pairs, N)
+
+            def cost() -> Tensor:
+                # Lazy: the optimiser only reads it at the start point; later it already has
+                # the cost of the accepted poses from evaluate().
+                return evaluate(T_)
+
             if not config.newton:
                 return H, g, cost
             curvatures = out[3]
@@ -449,7 +455,7 @@ def _run(work: _Work, config: FastGOConfig):
 
 
 def _rms(T: Tensor, work: _Work) -> Tensor:
-    c = _pair_cost(T, work.pairs, work.stats)
+    c = _pair_cost(T, work.pairs, work.stats, work.extra.get("centred"))
     n = work.stats.n
     return torch.where(n > 0, c / torch.where(n > 0, n, torch.ones_like(n)), torch.zeros_like(n)).sqrt()
 

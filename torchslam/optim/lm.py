@@ -38,6 +38,10 @@ def _unpack(out: tuple) -> tuple:
     return (out[0], out[1], out[2], out[3] if len(out) > 3 else None)
 
 
+def _value(x):
+    return x() if callable(x) else x
+
+
 @dataclass(frozen=True)
 class LMConfig:
     """Levenberg-Marquardt settings.
@@ -132,7 +136,8 @@ def levenberg_marquardt_se3(
         num_problems: B.
         linearize: ``T -> (H, g, cost)`` or ``(H, g, cost, S)`` with ``H`` a
             :class:`BlockSparseMatrix` over the N poses (same pattern every call), ``g`` (N, 6),
-            ``cost`` (B,) and optional ``S`` (N, 6, 6) residual-curvature diagonal blocks (the
+            ``cost`` (B,) (or a function returning it: only the first call's cost is read,
+            later costs come from ``evaluate``) and optional ``S`` (N, 6, 6) residual-curvature diagonal blocks (the
             exact Hessian is ``H + S``), or a function returning them, called only when a
             Newton step is tried.
         evaluate: ``T -> cost`` (B,), the same cost without the linearisation.
@@ -152,6 +157,7 @@ def levenberg_marquardt_se3(
     B = num_problems
     dev, dt = T.device, T.dtype
     H, g, cost, S = _unpack(linearize(T))
+    cost = _value(cost)
     if symbolic is None and config.solver in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
         symbolic = analyze(H.num_nodes, H.rows, H.cols, fixed, H.block_size, config.leaf_size, config.ordering)
     lam = torch.full((B,), config.damping, dtype=dt, device=dev)
