@@ -93,3 +93,27 @@ def test_indefinite_exact_hessian_falls_back_to_gauss_newton():
     res = levenberg_marquardt_se3(T0, torch.arange(3), 3, lin_bad, ev, torch.zeros(3, dtype=torch.bool), LMConfig(iterations=30))
     assert res.converged.all() and torch.isfinite(res.T).all()
     assert se3_log(se3_inverse(res.T) @ targets).abs().max() < 1e-9
+
+
+def test_lm_lazy_cost_matches_eager_and_is_read_once():
+    g = torch.Generator().manual_seed(3)
+    targets = se3_exp(torch.randn(4, 6, generator=g, dtype=torch.float64))
+    T0 = se3_exp(0.3 * torch.randn(4, 6, generator=g, dtype=torch.float64)) @ targets
+    lin, ev = _prior_problem(targets)
+    calls = []
+
+    def lazy(T):
+        H, gr, cost = lin(T)
+
+        def c():
+            calls.append(1)
+            return cost
+
+        return H, gr, c
+
+    fixed = torch.zeros(4, dtype=torch.bool)
+    eager = levenberg_marquardt_se3(T0, torch.arange(4), 4, lin, ev, fixed, LMConfig(iterations=30))
+    res = levenberg_marquardt_se3(T0, torch.arange(4), 4, lazy, ev, fixed, LMConfig(iterations=30))
+    assert len(calls) == 1  # only the start point's cost is read
+    assert torch.equal(res.T, eager.T) and torch.equal(res.cost, eager.cost)
+    assert torch.equal(res.iterations, eager.iterations)
