@@ -1,7 +1,15 @@
 """Batched SO(3)/SE(3) geometry, quaternions, the pinhole camera and rigid alignment."""
 
 from .align import umeyama_alignment
-from .camera import PinholeCamera, backproject_depth, intrinsics_matrix, project_points, scale_intrinsics
+from .camera import (
+    PinholeCamera,
+    backproject_depth,
+    distort_normalized,
+    intrinsics_matrix,
+    project_points,
+    scale_intrinsics,
+    undistorted_rays,
+)
 from .lie import (
     SMALL_ANGLE,
     se3_act,
@@ -22,6 +30,7 @@ __all__ = [
     "PinholeCamera",
     "SMALL_ANGLE",
     "backproject_depth",
+    "distort_normalized",
     "intrinsics_matrix",
     "project_points",
     "quat_xyzw_slerp",
@@ -39,5 +48,6 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "umeyama_alignment",
+    "undistorted_rays",
     "vex",
 ]

@@ -3,23 +3,51 @@
 Convention:
     Intrinsics as a tensor are ``(..., 4)`` = ``(fx, fy, cx, cy)`` in pixels, with pixel centres
     at integer coordinates (``u = fx x / z + cx``). Camera frame: x right, y down, z forward.
+
+Lens distortion (optional, ``PinholeCamera.distortion``) is the Brown-Conrady model on normalised
+coordinates ``(x, y) = (X / Z, Y / Z)`` with the coefficient order ``k1 k2 p1 p2 [k3 [k4 k5 k6]]``
+(the order OpenCV and the TUM RGB-D calibration use). With ``r^2 = x^2 + y^2``:
+``x_d = x f(r) + 2 p1 x y + p2 (r^2 + 2 x^2)``, ``y_d = y f(r) + p1 (r^2 + 2 y^2) + 2 p2 x y``,
+``f(r) = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)`` and the pixel is
+``u = fx x_d + cx``, ``v = fy y_d + cy``.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..errors import ShapeError, check_float, check_shape
 
-__all__ = ["PinholeCamera", "backproject_depth", "project_points", "scale_intrinsics", "intrinsics_matrix"]
+__all__ = [
+    "PinholeCamera",
+    "backproject_depth",
+    "distort_normalized",
+    "intrinsics_matrix",
+    "project_points",
+    "scale_intrinsics",
+    "undistorted_rays",
+]
+
+_DISTORTION_LENGTHS = (0, 4, 5, 8)
 
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Pinhole intrinsics of one camera and its image size."""
+    """Pinhole intrinsics of one camera, its image size and optional lens distortion.
+
+    Attributes:
+        fx, fy: focal lengths, pixels.
+        cx, cy: principal point, pixels (pixel centres at integers).
+        width, height: image size, pixels.
+        distortion: Brown-Conrady coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]`` (0, 4, 5 or 8
+            values, see the module docstring) acting on normalised coordinates, or None for an
+            ideal pinhole. Stored as a tuple of floats.
+    """
 
     fx: float
     fy: float
@@ -27,12 +55,30 @@ class PinholeCamera:
     cy: float
     width: int
     height: int
+    distortion: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (self.fx > 0 and self.fy > 0):
             raise ShapeError(f"PinholeCamera: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if not (self.width > 0 and self.height > 0):
             raise ShapeError(f"PinholeCamera: image size must be positive, got {self.width}x{self.height}")
+        if self.distortion is not None:
+            try:
+                d = tuple(float(c) for c in self.distortion)
+            except (TypeError, ValueError) as exc:
+                raise ShapeError(f"PinholeCamera: distortion must be a sequence of numbers, got {self.distortion!r}") from exc
+            if len(d) not in _DISTORTION_LENGTHS:
+                raise ShapeError(
+                    f"PinholeCamera: distortion must have 0, 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {len(d)}"
+                )
+            if not all(math.isfinite(c) for c in d):
+                raise ShapeError(f"PinholeCamera: distortion coefficients must be finite, got {d}")
+            object.__setattr__(self, "distortion", d)
+
+    @property
+    def has_distortion(self) -> bool:
+        """True when ``distortion`` holds any non-zero coefficient."""
+        return self.distortion is not None and any(c != 0.0 for c in self.distortion)
 
     def as_tensor(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
         """Return ``(4,)`` intrinsics ``(fx, fy, cx, cy)``."""
@@ -41,7 +87,9 @@ class PinholeCamera:
     def scaled(self, factor: float) -> "PinholeCamera":
         """Return the camera of an image resized by ``factor`` (e.g. 0.5 for one pyramid level)."""
         fx, fy, cx, cy = _scale(self.fx, self.fy, self.cx, self.cy, factor, factor)
-        return PinholeCamera(fx, fy, cx, cy, max(1, round(self.width * factor)), max(1, round(self.height * factor)))
+        # Distortion acts on normalised coordinates, which resizing the image leaves unchanged.
+        size = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+        return PinholeCamera(fx, fy, cx, cy, *size, distortion=self.distortion)
 
 
 def _scale(fx, fy, cx, cy, sx, sy):
@@ -65,12 +113,134 @@ def intrinsics_matrix(intrinsics: Tensor) -> Tensor:
     return torch.stack([fx, o, cx, o, fy, cy, o, o, one], -1).reshape(intrinsics.shape[:-1] + (3, 3))
 
 
-def backproject_depth(depth: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor]:
+def _distortion_terms(d: tuple[float, ...]) -> tuple[float, ...]:
+    """The 8 coefficients ``k1 k2 p1 p2 k3 k4 k5 k6`` with the missing ones zero."""
+    return tuple(d) + (0.0,) * (8 - len(d))
+
+
+def distort_normalized(xy: Tensor, distortion: tuple[float, ...] | None) -> Tensor:
+    """Apply the forward Brown-Conrady model to normalised coordinates (module docstring).
+
+    Args:
+        xy: (..., 2) ideal normalised coordinates ``(X / Z, Y / Z)``.
+        distortion: coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]`` or None (returns ``xy``).
+
+    Returns:
+        (..., 2) distorted normalised coordinates; pixels are ``fx x_d + cx``, ``fy y_d + cy``.
+    """
+    check_shape(xy, "... 2", "xy")
+    check_float(xy, "xy")
+    if distortion is None or len(distortion) == 0:
+        return xy
+    if len(distortion) not in _DISTORTION_LENGTHS:
+        raise ShapeError(f"distortion: expected 0, 4, 5 or 8 coefficients, got {len(distortion)}")
+    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
+    x, y = xy.unbind(-1)
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    if k4 or k5 or k6:
+        radial = radial / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xy2 = 2 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
+    return torch.stack([xd, yd], dim=-1)
+
+
+def undistorted_rays(
+    camera: PinholeCamera, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+) -> Tensor:
+    """Normalised viewing rays ``(x, y) = (X / Z, Y / Z)`` of every pixel, lens distortion removed.
+
+    Pixel ``(u, v)`` (row-major, ``u`` the column) shows the point whose ideal normalised
+    coordinates ``(x, y)`` distort (``distort_normalized``) to ``((u - cx) / fx, (v - cy) / fy)``.
+    The inversion starts from OpenCV's iterative ``undistortPoints`` and is finished with
+    Newton steps on the forward model in float64 (analytic 2x2 Jacobian), so that re-distorting
+    the rays reproduces the pixel grid to well below 1e-6 px over the TUM fr1/fr2 images. Without
+    distortion the rays are exactly ``((u - cx) / fx, (v - cy) / fy)`` as ``backproject_depth``
+    computes them.
+
+    Args:
+        camera: intrinsics, image size and distortion.
+        dtype: floating dtype of the result.
+        device: device of the result.
+
+    Returns:
+        (H*W, 2) normalised coordinates, row-major pixel order (``backproject_depth``'s order).
+
+    Raises:
+        ShapeError: when the inversion does not converge (distortion too strong for the image,
+            i.e. the forward model folds over inside the field of view).
+    """
+    if not isinstance(camera, PinholeCamera):
+        raise ShapeError(f"camera: expected a PinholeCamera, got {type(camera).__name__}")
+    if not camera.has_distortion:
+        return _pinhole_rays(camera, dtype, device)
+    xd = _pinhole_rays(camera, torch.float64, "cpu")  # distorted normalised coordinates of the pixels
+    v, u = torch.meshgrid(
+        torch.arange(camera.height, dtype=torch.float64), torch.arange(camera.width, dtype=torch.float64), indexing="ij"
+    )
+    import cv2  # noqa: PLC0415 - only needed for distorted cameras
+
+    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    pix = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).numpy().reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    d = np.asarray(camera.distortion, dtype=np.float64)
+    start = cv2.undistortPoints(pix, K, d, None, None, None, criteria).reshape(-1, 2)
+    xy = torch.from_numpy(np.ascontiguousarray(start, dtype=np.float64))
+    for _ in range(8):
+        res = distort_normalized(xy, camera.distortion) - xd
+        J = _distortion_jacobian(xy, camera.distortion)  # (N, 2, 2)
+        # Closed-form 2x2 solve; a singular Jacobian (a fold) gives inf/NaN, caught below.
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        step = torch.stack(
+            [J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1], J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], dim=-1
+        )
+        xy = xy - step / det[:, None]
+    err_px = ((distort_normalized(xy, camera.distortion) - xd) * xd.new_tensor([camera.fx, camera.fy])).abs().max()
+    if not bool(torch.isfinite(err_px)) or float(err_px) > 1e-6:
+        raise ShapeError(f"camera: lens distortion {camera.distortion} cannot be inverted over the image (residual {float(err_px):.3g} px)")
+    return xy.to(dtype=dtype, device=device)
+
+
+def _pinhole_rays(camera: PinholeCamera, dtype: torch.dtype, device) -> Tensor:
+    """``((u - cx) / fx, (v - cy) / fy)`` computed in ``dtype`` as ``backproject_depth`` does."""
+    v, u = torch.meshgrid(
+        torch.arange(camera.height, dtype=dtype, device=device),
+        torch.arange(camera.width, dtype=dtype, device=device),
+        indexing="ij",
+    )
+    intr = camera.as_tensor(dtype, device)
+    return torch.stack([(u.reshape(-1) - intr[2]) / intr[0], (v.reshape(-1) - intr[3]) / intr[1]], dim=-1)
+
+
+def _distortion_jacobian(xy: Tensor, distortion: tuple[float, ...]) -> Tensor:
+    """(..., 2, 2) derivative of ``distort_normalized`` with respect to ``xy``."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
+    x, y = xy.unbind(-1)
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d num / d r2
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    radial = num / den
+    drad = (dnum * den - num * dden) / (den * den)  # d radial / d r2; d r2 / dx = 2x
+    j00 = radial + x * drad * 2 * x + 2 * p1 * y + 6 * p2 * x
+    j01 = x * drad * 2 * y + 2 * p1 * x + 2 * p2 * y
+    j10 = y * drad * 2 * x + 2 * p1 * x + 2 * p2 * y
+    j11 = radial + y * drad * 2 * y + 6 * p1 * y + 2 * p2 * x
+    return torch.stack([torch.stack([j00, j01], -1), torch.stack([j10, j11], -1)], -2)
+
+
+def backproject_depth(depth: Tensor, intrinsics: Tensor, rays: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Lift every pixel of depth images to 3-D points in the camera frame.
 
     Args:
         depth: (B, 1, H, W) depth in metres; 0 (or any non-finite or negative value) is invalid.
         intrinsics: (B, 4) or (4,) intrinsics ``(fx, fy, cx, cy)``.
+        rays: optional (H*W, 2) or (B, H*W, 2) normalised rays of the pixels
+            (``undistorted_rays`` for a camera with lens distortion); when given the points are
+            ``(x z, y z, z)`` and ``intrinsics`` is only checked, otherwise the ideal pinhole
+            ``((u - cx) / fx z, (v - cy) / fy z, z)``.
 
     Returns:
         points: (B, H*W, 3) points in metres, row-major pixel order; invalid pixels give (0, 0, 0).
@@ -86,6 +256,14 @@ def backproject_depth(depth: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor
     z = depth.reshape(B, H * W)
     valid = torch.isfinite(z) & (z > 0)
     z = torch.where(valid, z, torch.zeros_like(z))
+    if rays is not None:
+        if rays.dim() == 2:
+            rays = rays[None]
+        check_shape(rays, f"R {H * W} 2", "rays")
+        if rays.shape[0] not in (1, B):
+            raise ShapeError(f"rays: expected a batch of 1 or {B}, got {rays.shape[0]}")
+        r = rays.to(depth.dtype)
+        return torch.stack([r[..., 0] * z, r[..., 1] * z, z], dim=-1), valid
     v, u = torch.meshgrid(
         torch.arange(H, dtype=depth.dtype, device=depth.device),
         torch.arange(W, dtype=depth.dtype, device=depth.device),
