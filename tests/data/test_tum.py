@@ -293,6 +293,21 @@ def test_preset_values():
     assert all(v.depth_scale == 5000.0 and (v.camera.width, v.camera.height) == (640, 480) for v in INTRINSICS_PRESETS.values())
 
 
+def test_preset_distortion():
+    """freiburg1/2 images are distributed distorted (published k1 k2 p1 p2 k3); fr3 and ICL are not."""
+    cams = {k: v.camera for k, v in INTRINSICS_PRESETS.items()}
+    assert cams["freiburg1"].distortion == (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+    assert cams["freiburg2"].distortion == (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
+    assert cams["freiburg3"].distortion is None and cams["icl_nuim"].distortion is None
+    assert cams["freiburg1"].has_distortion and not cams["freiburg3"].has_distortion
+
+
+def test_real_fr1_sequence_carries_the_preset_distortion(shared_data):
+    seq = TUMSequence(shared_data / "tum_fr1_xyz", end=2)
+    assert seq.calibration_source == "preset:freiburg1"
+    assert seq.camera.distortion == INTRINSICS_PRESETS["freiburg1"].camera.distortion
+
+
 def test_calibration_file_and_arguments_take_precedence(tmp_path):
     _write_seq(tmp_path / "tum_fr2_x", _times(1))  # has calibration.txt despite the fr2 name
     seq = TUMSequence(tmp_path / "tum_fr2_x")
@@ -313,6 +328,10 @@ def test_calibration_file_and_arguments_take_precedence(tmp_path):
     "text, line, match",
     [
         ("# c\n100 100 16 12 5000 32\n", 2, "expected 7 values"),
+        ("100 100 16 12 5000 32 24 0.1\n", 1, "expected 7 values.*4, 5 or 8 distortion coefficients.*got 8"),
+        ("100 100 16 12 5000 32 24 0.1 0.2 0.3 0.4 0.5 0.6\n", 1, "got 13"),
+        ("100 100 16 12 5000 32 24 0.1 x 0 0\n", 1, "not a number"),
+        ("100 100 16 12 5000 32 24 0.1 inf 0 0\n", 1, "NaN or infinite"),
         ("100 100 16 x 5000 32 24\n", 1, "not a number"),
         ("#\n\n100 100 16 12 5000 32.5 24\n", 3, "must be integers"),
         ("100 -100 16 12 5000 32 24\n", 1, "focal lengths must be positive"),
@@ -335,6 +354,16 @@ def test_read_calibration_values(tmp_path):
     path.write_text("# fx fy cx cy depth_scale width height\n585 586 320 240 1000 640 480\n")
     cam, scale = read_calibration(path)
     assert cam == PinholeCamera(585.0, 586.0, 320.0, 240.0, 640, 480) and scale == 1000.0
+    assert cam.distortion is None
+
+
+@pytest.mark.parametrize("coeffs", [(0.1, -0.2, 0.003, -0.004), (0.1, -0.2, 0.003, -0.004, 0.5), (0.1, -0.2, 0.003, -0.004, 0.5, 0.01, 0.02, 0.03)])
+def test_read_calibration_optional_distortion(tmp_path, coeffs):
+    path = tmp_path / "calibration.txt"
+    path.write_text("# fx fy cx cy depth_scale width height k1 k2 p1 p2 ...\n585 586 320 240 1000 640 480 " + " ".join(map(str, coeffs)) + "\n")
+    cam, scale = read_calibration(path)
+    assert cam == PinholeCamera(585.0, 586.0, 320.0, 240.0, 640, 480, coeffs) and scale == 1000.0
+    assert cam.distortion == coeffs
 
 
 # ----------------------------------------------------------------------------------------------

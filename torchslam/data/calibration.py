@@ -6,7 +6,8 @@ Convention:
     ``metres = raw / depth_scale`` (5000 for TUM RGB-D and ICL-NUIM, 1000 for millimetre sensors).
 
 A ``calibration.txt`` holds, after any ``#`` comment lines, exactly one line
-``fx fy cx cy depth_scale width height``.
+``fx fy cx cy depth_scale width height``, optionally followed by 4, 5 or 8 lens distortion
+coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]`` (``PinholeCamera.distortion``).
 """
 
 from __future__ import annotations
@@ -49,12 +50,17 @@ class Calibration:
     source: str
 
 
+# Published TUM RGB-D lens distortion (k1 k2 p1 p2 k3) of the freiburg1 and freiburg2 Kinects,
+# whose images are distributed without undistortion; freiburg3 images are already undistorted.
+FREIBURG1_DISTORTION = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+FREIBURG2_DISTORTION = (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
+
 # TUM RGB-D "ROS default" intrinsics per Kinect (freiburg1/2/3) and ICL-NUIM, all 640x480 with
 # depth scale 5000. ICL-NUIM publishes fy = -480.0 because its renderer's image y axis points up;
 # the TUM-format ICL-NUIM release stores images with y down, so torchslam uses fy = +480.0.
 INTRINSICS_PRESETS: dict[str, CameraPreset] = {
-    "freiburg1": CameraPreset(PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480), 5000.0),
-    "freiburg2": CameraPreset(PinholeCamera(520.9, 521.0, 325.1, 249.7, 640, 480), 5000.0),
+    "freiburg1": CameraPreset(PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480, FREIBURG1_DISTORTION), 5000.0),
+    "freiburg2": CameraPreset(PinholeCamera(520.9, 521.0, 325.1, 249.7, 640, 480, FREIBURG2_DISTORTION), 5000.0),
     "freiburg3": CameraPreset(PinholeCamera(535.4, 539.2, 320.1, 247.6, 640, 480), 5000.0),
     "icl_nuim": CameraPreset(PinholeCamera(481.20, 480.00, 319.50, 239.50, 640, 480), 5000.0),
 }
@@ -81,7 +87,7 @@ def preset_for_name(name: str) -> str | None:
 
 
 def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
-    """Read a ``calibration.txt``: one line ``fx fy cx cy depth_scale width height``.
+    """Read a ``calibration.txt``: one line ``fx fy cx cy depth_scale width height [k1 k2 p1 p2 [k3 [k4 k5 k6]]]``.
 
     Blank lines and lines starting with ``#`` are skipped.
 
@@ -116,22 +122,26 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
         raise DataFormatError(f"{path}: no calibration line; expected one line 'fx fy cx cy depth_scale width height'")
     lineno, parts = found
     where = f"{path}:{lineno}"
-    if len(parts) != 7:
-        raise DataFormatError(f"{where}: expected 7 values 'fx fy cx cy depth_scale width height', got {len(parts)}")
+    if len(parts) not in (7, 11, 12, 15):
+        raise DataFormatError(
+            f"{where}: expected 7 values 'fx fy cx cy depth_scale width height', optionally followed by 4, 5 "
+            f"or 8 distortion coefficients 'k1 k2 p1 p2 [k3 [k4 k5 k6]]', got {len(parts)}"
+        )
     try:
         fx, fy, cx, cy, depth_scale = (float(v) for v in parts[:5])
+        distortion = tuple(float(v) for v in parts[7:]) or None
     except ValueError as exc:
         raise DataFormatError(f"{where}: not a number ({exc})") from exc
     try:
-        width, height = (int(v) for v in parts[5:])
+        width, height = (int(v) for v in parts[5:7])
     except ValueError as exc:
         raise DataFormatError(f"{where}: width and height must be integers, got {parts[5]!r} {parts[6]!r}") from exc
-    if not all(math.isfinite(v) for v in (fx, fy, cx, cy, depth_scale)):
+    if not all(math.isfinite(v) for v in (fx, fy, cx, cy, depth_scale, *(distortion or ()))):
         raise DataFormatError(f"{where}: NaN or infinite value")
     if depth_scale <= 0:
         raise DataFormatError(f"{where}: depth_scale must be > 0, got {depth_scale}")
     try:
-        camera = PinholeCamera(fx, fy, cx, cy, width, height)
+        camera = PinholeCamera(fx, fy, cx, cy, width, height, distortion)
     except ShapeError as exc:
         raise DataFormatError(f"{where}: {exc}") from exc
     return camera, depth_scale
