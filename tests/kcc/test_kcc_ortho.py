@@ -295,3 +295,48 @@ def test_rgbd_to_points_is_bit_identical_to_backproject_depth_across_cameras():
                 ref_pts, ref_valid = backproject_depth(depth, intr)
                 assert torch.equal(pts, ref_pts) and torch.equal(valid, ref_valid)
                 assert torch.equal(grey, grey_from_rgb(rgb))
+
+
+def test_rgbd_to_points_along_undistorted_rays_and_distorted_sample_grey():
+    """Rays from geometry.undistorted_rays; sampling through the lens matches OpenCV + scipy."""
+    from scipy.ndimage import map_coordinates
+    from scipy.spatial.transform import Rotation
+
+    from torchslam.geometry import PinholeCamera, undistorted_rays
+
+    B, H, W = 2, 24, 32
+    cam = PinholeCamera(30.0, 31.0, 15.2, 11.7, W, H, (0.26, -0.95, -0.005, 0.003, 1.16))
+    intr = cam.as_tensor(torch.float64)
+    g = _gen(5)
+    rgb = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
+    depth = 1.0 + torch.rand(B, 1, H, W, generator=g, dtype=torch.float64)
+    depth[1, 0, 4, 6] = 0.0
+    rays = undistorted_rays(cam)
+    points, grey0, valid = rgbd_to_points(rgb, depth, intr, rays=rays)
+    z = depth.flatten(1)
+    expect = torch.stack([rays[:, 0] * z, rays[:, 1] * z, z], dim=-1)
+    assert torch.equal(points[valid], expect[valid]) and int(valid.sum()) == B * H * W - 1
+    assert torch.equal(grey0, grey_from_rgb(rgb))
+    # Without rotation each point lands back on its own pixel through the lens.
+    eye = torch.eye(3, dtype=torch.float64).expand(B, 3, 3)
+    same, ok_same = sample_grey(rgb, points, valid, eye, intr, grey_image=grey0, distortion=cam.distortion)
+    torch.testing.assert_close(same[valid], grey0[valid], atol=1e-6, rtol=0)
+    assert torch.equal(ok_same, valid)
+    # A rotation: OpenCV projects with the distortion, scipy samples bilinearly.
+    R = torch.from_numpy(Rotation.from_rotvec([[0.02, -0.03, 0.01], [-0.04, 0.01, 0.05]]).as_matrix())
+    grey, ok = sample_grey(rgb, points, valid, R, intr, distortion=cam.distortion)
+    plain, _ = sample_grey(rgb, points, valid, R, intr)
+    img = grey0.view(B, H, W).numpy()
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]])
+    for b in range(B):
+        m = valid[b].numpy()
+        q = points[b].numpy() @ R[b].numpy().T
+        uv, _ = cv2.projectPoints(q[m], np.zeros(3), np.zeros(3), K, np.asarray(cam.distortion))
+        u, v = uv.reshape(-1, 2).T
+        inside = (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+        np.testing.assert_array_equal(ok[b].numpy()[m], inside)
+        ref = map_coordinates(img[b], np.stack([v, u]), order=1, mode="nearest")
+        np.testing.assert_allclose(grey[b].numpy()[m][inside], ref[inside], atol=1e-6)
+    assert not torch.allclose(grey[ok], plain[ok], atol=1e-3)  # the lens matters here
+    with pytest.raises(ShapeError, match="rays"):
+        rgbd_to_points(rgb, depth, intr, rays=rays[:-1])

@@ -125,3 +125,32 @@ def test_bad_config_values_name_the_key():
     with pytest.raises(ConfigError, match=r"kcc.sigmaa: unknown key"):
         config_from_dict(NISlamConfig, {"kcc": {"sigmaa": 1.0}})
     assert math.isclose(config_from_dict(NISlamConfig, {"kcc": {"sigma": 0.3}}).kcc.sigma, 0.3)
+
+
+class _Recalibrated(_Edited):
+    """A synthetic sequence reporting another camera (here: one with lens distortion)."""
+
+    def __init__(self, seq, camera):
+        super().__init__(seq, lambda f: f)
+        self.camera = camera
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
+    from torchslam.geometry import undistorted_rays
+
+    seq = generate_sequence(SyntheticConfig(frames=3, trajectory="translate", **SMALL))
+    cam = dataclasses.replace(seq.camera, distortion=(0.26, -0.95, -0.005, 0.003, 1.16))
+    on = NISlam(NISlamConfig(pixel_stride=stride))
+    on.start(_Recalibrated(seq, cam))
+    full = undistorted_rays(cam, torch.float32).view(cam.height, cam.width, 2)
+    assert torch.equal(on.rays, full[::stride, ::stride].reshape(-1, 2)) and on.distortion == cam.distortion
+    off = NISlam(NISlamConfig(pixel_stride=stride, undistort=False))
+    off.start(_Recalibrated(seq, cam))
+    assert off.rays is None and off.distortion is None
+    plain = NISlam(NISlamConfig(pixel_stride=stride))
+    plain.start(seq)  # no distortion: the pinhole path, untouched
+    assert plain.rays is None and plain.distortion is None
+    # Tracking runs along the rays: the first frame's keyframe points follow them.
+    on.track(seq[0])
+    assert len(on.keyframes) == 1

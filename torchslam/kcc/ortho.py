@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
+from ..geometry.camera import distort_normalized
 
 __all__ = [
     "OrthoImages",
@@ -74,13 +75,18 @@ def grey_from_rgb(rgb: Tensor) -> Tensor:
     return (rgb * w).sum(dim=1).flatten(1)
 
 
-def rgbd_to_points(rgb: Tensor, depth: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def rgbd_to_points(
+    rgb: Tensor, depth: Tensor, intrinsics: Tensor, rays: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
     """Lift registered colour and depth images to a grey point cloud in the camera frame.
 
     Args:
         rgb: (B, 3, H, W) colour in [0, 1].
         depth: (B, 1, H, W) depth in metres, 0 = invalid.
         intrinsics: (B, 4) or (4,) ``(fx, fy, cx, cy)`` in pixels.
+        rays: optional (H*W, 2) normalised rays of the pixels with the lens distortion removed
+            (``geometry.undistorted_rays``); the points are then ``(x z, y z, z)``. ``None``
+            uses the ideal pinhole factors ``(u - c) / f``.
 
     Returns:
         points: (B, H*W, 3) camera-frame points, metres.
@@ -96,7 +102,12 @@ def rgbd_to_points(rgb: Tensor, depth: Tensor, intrinsics: Tensor) -> tuple[Tens
     check_shape(intr, "B 4", "intrinsics", dims)
     # Same arithmetic as ``backproject_depth`` ((u - c) / f * z, bit-identical), with the per-pixel
     # factors (u - c) / f kept between frames of one camera instead of rebuilt from a meshgrid.
-    rx, ry = _pixel_rays(intr.to(depth.dtype), H, W)
+    if rays is None:
+        rx, ry = _pixel_rays(intr.to(depth.dtype), H, W)
+    else:
+        check_shape(rays, f"{H * W} 2", "rays")
+        check_float(rays, "rays")
+        rx, ry = rays.to(depth.dtype)[None].unbind(-1)  # (1, H*W) each
     z = depth.reshape(B, H * W)
     valid = torch.isfinite(z) & (z > 0)
     z = torch.where(valid, z, 0.0)
@@ -130,7 +141,13 @@ def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
 
 
 def sample_grey(
-    rgb: Tensor, points: Tensor, valid: Tensor, rotation: Tensor, intrinsics: Tensor, grey_image: Tensor | None = None
+    rgb: Tensor,
+    points: Tensor,
+    valid: Tensor,
+    rotation: Tensor,
+    intrinsics: Tensor,
+    grey_image: Tensor | None = None,
+    distortion: tuple[float, ...] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Grey values of points seen from a rotated camera: the colour image taken at another instant.
 
@@ -151,6 +168,9 @@ def sample_grey(
         intrinsics: (B, 4) or (4,) ``(fx, fy, cx, cy)`` of the colour image, pixels.
         grey_image: (B, H*W) ``grey_from_rgb(rgb)`` where the caller already has it (e.g. from
             ``rgbd_to_points``), so it is not computed twice; ``None`` computes it.
+        distortion: lens distortion of the colour camera (``PinholeCamera.distortion``); the
+            rotated points are then distorted (``geometry.distort_normalized``) before the
+            intrinsics map them to pixels. ``None`` projects with the ideal pinhole.
 
     Returns:
         grey: (B, H*W) BT.601 grey at the re-projected positions (0 where not valid).
@@ -170,19 +190,10 @@ def sample_grey(
     if intr.dim() == 1:
         intr = intr[None].expand(B, 4)
     check_shape(intr, "B 4", "intrinsics", dims)
-    # Rotation, pinhole projection and grid_sample's normalised coordinates in one 3x3 map:
-    # gx = (2u + 1) / W - 1 with u = fx x / z + cx, i.e. the rows of S K R applied to p, over z.
-    # The third row of S K is (0, 0, 1), so n[:, 2] is the rotated z itself.
-    S = torch.zeros(B, 3, 3, dtype=points.dtype, device=points.device)
-    S[:, 0, 0] = 2 * intr[:, 0] / W
-    S[:, 0, 2] = (2 * intr[:, 2] + 1) / W - 1
-    S[:, 1, 1] = 2 * intr[:, 1] / H
-    S[:, 1, 2] = (2 * intr[:, 3] + 1) / H - 1
-    S[:, 2, 2] = 1
-    n = _rotate_planar(points, S @ rotation.to(points.dtype))  # (B, 3, N)
-    z = n[:, 2:3]
-    front = z > 0
-    g = n[:, :2] / torch.where(front, z, 1.0)  # (B, 2, N) normalised image coordinates
+    if distortion is not None and any(c != 0.0 for c in distortion):
+        g, front = _project_distorted(points, rotation.to(points.dtype), intr, distortion, H, W)
+    else:
+        g, front = _project_pinhole(points, rotation.to(points.dtype), intr, H, W)
     # u in [-0.5, W - 0.5] and v in [-0.5, H - 0.5] are |g| <= 1.
     inside = (front & (g.abs() <= 1)).all(dim=1)  # (B, N)
     grid = g.transpose(1, 2).reshape(B, H, W, 2)
@@ -195,6 +206,39 @@ def sample_grey(
     grey = F.grid_sample(grey_img, grid.to(grey_img.dtype), mode="bilinear", padding_mode="border", align_corners=False)
     ok = valid & inside
     return torch.where(ok, grey.flatten(1).to(points.dtype), points.new_zeros(())), ok
+
+
+def _project_pinhole(points: Tensor, rotation: Tensor, intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """(B, 2, N) grid_sample coordinates of rotated points under the pinhole, and (B, 1, N) z > 0."""
+    B = points.shape[0]
+    # Rotation, pinhole projection and grid_sample's normalised coordinates in one 3x3 map:
+    # gx = (2u + 1) / W - 1 with u = fx x / z + cx, i.e. the rows of S K R applied to p, over z.
+    # The third row of S K is (0, 0, 1), so n[:, 2] is the rotated z itself.
+    S = torch.zeros(B, 3, 3, dtype=points.dtype, device=points.device)
+    S[:, 0, 0] = 2 * intr[:, 0] / W
+    S[:, 0, 2] = (2 * intr[:, 2] + 1) / W - 1
+    S[:, 1, 1] = 2 * intr[:, 1] / H
+    S[:, 1, 2] = (2 * intr[:, 3] + 1) / H - 1
+    S[:, 2, 2] = 1
+    n = _rotate_planar(points, S @ rotation)  # (B, 3, N)
+    z = n[:, 2:3]
+    front = z > 0
+    return n[:, :2] / torch.where(front, z, 1.0), front  # (B, 2, N) normalised image coordinates
+
+
+def _project_distorted(
+    points: Tensor, rotation: Tensor, intr: Tensor, distortion: tuple[float, ...], H: int, W: int
+) -> tuple[Tensor, Tensor]:
+    """As ``_project_pinhole`` with the Brown-Conrady distortion applied to ``(x / z, y / z)``."""
+    n = _rotate_planar(points, rotation)  # (B, 3, N)
+    z = n[:, 2:3]
+    front = z > 0
+    xy = n[:, :2] / torch.where(front, z, 1.0)  # (B, 2, N) ideal normalised coordinates
+    xd = distort_normalized(xy.transpose(1, 2), distortion).transpose(1, 2)  # (B, 2, N)
+    # gx = (2u + 1) / W - 1 with u = fx x_d + cx (and likewise for v).
+    scale = torch.stack([2 * intr[:, 0] / W, 2 * intr[:, 1] / H], dim=-1)[..., None]  # (B, 2, 1)
+    offset = torch.stack([(2 * intr[:, 2] + 1) / W - 1, (2 * intr[:, 3] + 1) / H - 1], dim=-1)[..., None]
+    return xd * scale + offset, front
 
 
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:

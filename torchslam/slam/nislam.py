@@ -47,7 +47,7 @@ from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError
 from ..features import ORBConfig, extract_orb
-from ..geometry import se3_from_Rt, se3_inverse, so3_log
+from ..geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
 from ..imu.attitude import AttitudeStream, groundtruth_attitude, simulated_attitude
 from ..kcc import (
     KCCConfig,
@@ -140,6 +140,10 @@ class NISlamConfig:
             appears in the colour image after the attitude stream's rotation between the two
             instants (``sample_grey``). The geometry, and the attitude that rotates it, are
             always taken at the depth instant.
+        undistort: where the sequence camera has lens distortion (``PinholeCamera.distortion``,
+            e.g. the TUM freiburg1/2 presets), back-project each pixel along its undistorted ray
+            and sample the colour image through the forward distortion; off treats the images
+            as ideal pinhole images. Cameras without distortion are unaffected.
         kcc: correlator, keyframe and fusion settings. The paper's values except
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
             optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, and
@@ -159,6 +163,7 @@ class NISlamConfig:
     min_valid_points: int = 1000
     max_jump_m: float = 0.1
     grey_at_depth_time: bool = True
+    undistort: bool = True
     kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True))
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01
@@ -343,6 +348,13 @@ class NISlam:
         s = cfg.pixel_stride
         cam_s = cam if s == 1 else type(cam)(cam.fx / s, cam.fy / s, cam.cx / s, cam.cy / s, max(1, cam.width // s), max(1, cam.height // s))
         self.intrinsics = cam_s.as_tensor(torch.float32, self.device)[None]
+        # Undistorted rays of the (strided) pixels: those of the full image at the kept pixels.
+        self.rays: Tensor | None = None
+        self.distortion: tuple[float, ...] | None = None
+        if cfg.undistort and cam.has_distortion:
+            rays = undistorted_rays(cam, torch.float32, self.device).view(cam.height, cam.width, 2)
+            self.rays = rays[::s, ::s].reshape(-1, 2).contiguous()
+            self.distortion = cam.distortion
         self.attitude = attitude_stream(sequence, cfg)
         self.R_corr = torch.eye(3, dtype=torch.float64)
         self.keyframes: list[_Keyframe] = []
@@ -392,10 +404,10 @@ class NISlam:
         if cfg.pixel_stride > 1:
             rgb = rgb[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
             depth = depth[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
-        points, grey, valid = rgbd_to_points(rgb, depth, self.intrinsics)
+        points, grey, valid = rgbd_to_points(rgb, depth, self.intrinsics, rays=self.rays)
         if cfg.grey_at_depth_time and bool(ok[1]) and float(times[0]) != float(times[1]):
             R_cd = (R_att[1].T @ R_att[0]).to(points.dtype)[None]  # depth camera -> colour camera
-            grey, valid = sample_grey(rgb, points, valid, R_cd, self.intrinsics, grey_image=grey)
+            grey, valid = sample_grey(rgb, points, valid, R_cd, self.intrinsics, grey_image=grey, distortion=self.distortion)
         t0 = self._toc("backproject", t0)
         if int(valid.sum()) < cfg.min_valid_points:
             self.untracked["too_few_points"] += 1
