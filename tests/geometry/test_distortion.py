@@ -6,7 +6,12 @@ import pytest
 import torch
 
 from torchslam.errors import ShapeError
-from torchslam.geometry import PinholeCamera, backproject_depth, distort_normalized, undistorted_rays
+from torchslam.geometry import (
+    PinholeCamera,
+    backproject_depth,
+    distort_normalized,
+    undistorted_rays,
+)
 
 FR1 = PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
 FR2 = PinholeCamera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172))
@@ -17,10 +22,10 @@ def _K(cam):
     return np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
 
 
-def _cv_project(xy, cam, rvec=np.zeros(3)):
+def _cv_project(xy, cam):
     """Pixels of normalised points (N, 2) at z = 1 through OpenCV's projectPoints."""
     P = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-    uv, _ = cv2.projectPoints(P, rvec, np.zeros(3), _K(cam), np.asarray(cam.distortion or (), dtype=np.float64))
+    uv, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), _K(cam), np.asarray(cam.distortion or (), dtype=np.float64))
     return uv.reshape(-1, 2)
 
 

@@ -179,7 +179,7 @@ def undistorted_rays(
     v, u = torch.meshgrid(
         torch.arange(camera.height, dtype=torch.float64), torch.arange(camera.width, dtype=torch.float64), indexing="ij"
     )
-    import cv2  # noqa: PLC0415 - only needed for distorted cameras
+    import cv2  # only distorted cameras need OpenCV; keep it out of the geometry import
 
     K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
     pix = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).numpy().reshape(-1, 1, 2)
