@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 import yaml
 
 from torchslam.cli import main
@@ -65,6 +67,15 @@ def test_ctrl_c_keeps_what_was_computed(tmp_path):
     assert len(read_tum_trajectory(tmp_path / "trajectory.txt")) == 6
 
 
+def shared_data_or_skip():
+    from ..conftest import data_root
+
+    root = data_root() / "tum_fr1_xyz"
+    if not (root / "rgb.txt").is_file():
+        pytest.skip(f"real RGB-D data not found at {root}")
+    return root
+
+
 def test_run_errors_name_the_argument(tmp_path, capsys):
     assert main(["run", "--data", "synthetic", "--out", str(tmp_path / "a"), "--set", "kcc.sigmaa=1"]) == 2
     assert "kcc.sigmaa: unknown key" in capsys.readouterr().err
@@ -74,3 +85,7 @@ def test_run_errors_name_the_argument(tmp_path, capsys):
     bad.write_text("kcc: [1, 2\n")
     assert main(["run", "--config", str(bad), "--out", str(tmp_path / "c")]) == 2
     assert "bad.yaml:" in capsys.readouterr().err
+    # A run that fails before its first frame leaves no half-made run folder.
+    assert main(["run", "--data", str(shared_data_or_skip()), "--out", str(tmp_path / "d"), "--set", "attitude=imu"]) == 2
+    assert "no IMU stream" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()

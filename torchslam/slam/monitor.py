@@ -40,13 +40,23 @@ class Monitor:
 
 
 class TensorBoardMonitor(Monitor):
-    """Write TensorBoard event files into ``logdir``."""
+    """Write TensorBoard event files into ``logdir``.
+
+    The event file (and the folder) is created at the first record, so a run that fails before
+    producing anything leaves no half-made run folder behind.
+    """
 
     def __init__(self, logdir: str | os.PathLike) -> None:
-        from torch.utils.tensorboard import SummaryWriter  # imported lazily: heavy
-
         self.logdir = str(logdir)
-        self._writer = SummaryWriter(self.logdir)
+        self._w = None
+
+    @property
+    def _writer(self):
+        if self._w is None:
+            from torch.utils.tensorboard import SummaryWriter  # imported lazily: heavy
+
+            self._w = SummaryWriter(self.logdir)
+        return self._w
 
     def scalar(self, tag: str, value: float, step: int) -> None:
         self._writer.add_scalar(tag, float(value), step)
@@ -63,8 +73,9 @@ class TensorBoardMonitor(Monitor):
         self._writer.add_hparams(flat, clean, run_name=".")
 
     def close(self) -> None:
-        self._writer.flush()
-        self._writer.close()
+        if self._w is not None:
+            self._w.flush()
+            self._w.close()
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

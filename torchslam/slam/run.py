@@ -138,7 +138,6 @@ def run(
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
     sequence = load_sequence(options.data, data_cfg)
     out = Path(options.out)
-    out.mkdir(parents=True, exist_ok=True)
     monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
     try:
         system = spec.build(system_cfg, device=options.device, monitor=monitor)
