@@ -140,12 +140,13 @@ class SyntheticConfig:
     depth_scale: float = 5000.0
     max_depth: float = 10.0
     imu_rate: float = 200.0
-    gyro_noise_density: float = 1.7e-4
-    gyro_bias_walk: float = 2.0e-5
-    accel_noise_density: float = 2.0e-3
-    accel_bias_walk: float = 3.0e-3
-    gyro_bias_init: float = 5.0e-4
-    accel_bias_init: float = 2.0e-2
+    # The IMU noise defaults are ImuNoise's, so the two cannot drift apart.
+    gyro_noise_density: float = ImuNoise.gyro_noise_density
+    gyro_bias_walk: float = ImuNoise.gyro_bias_walk
+    accel_noise_density: float = ImuNoise.accel_noise_density
+    accel_bias_walk: float = ImuNoise.accel_bias_walk
+    gyro_bias_init: float = ImuNoise.gyro_bias_init
+    accel_bias_init: float = ImuNoise.accel_bias_init
     gravity: float = 9.81
     attitude_time_constant: float = 10.0
     texture_density: float = 128.0

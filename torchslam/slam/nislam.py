@@ -48,6 +48,7 @@ from ..data.trajectory import Trajectory
 from ..errors import ConfigError
 from ..features import ORBConfig, extract_orb
 from ..geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
+from ..imu import ImuNoise
 from ..imu.attitude import AttitudeStream, groundtruth_attitude, simulated_attitude
 from ..kcc import (
     KCCConfig,
@@ -155,8 +156,8 @@ class NISlamConfig:
 
     attitude: str = "auto"
     gravity: str = "auto"
-    sim_gyro_noise: float = 1.7e-4
-    sim_bias_walk: float = 2.0e-5
+    sim_gyro_noise: float = ImuNoise.gyro_noise_density
+    sim_bias_walk: float = ImuNoise.gyro_bias_walk
     sim_seed: int = 0
     attitude_max_gap: float = 0.1
     pixel_stride: int = 1
