@@ -33,6 +33,7 @@ The tracking step is batched over ``(B, ...)`` tensors; a ``NISlam`` instance ru
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -45,7 +46,7 @@ from torch import Tensor
 from ..backend import edge_residuals, optimize_pose_graph
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
-from ..errors import ConfigError
+from ..errors import ConfigError, ShapeError
 from ..features import ORBConfig, extract_orb
 from ..geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
 from ..imu import ImuNoise
@@ -72,7 +73,7 @@ from .base import SystemOutput
 from .monitor import Monitor
 from .registry import SystemSpec
 
-__all__ = ["LoopConfig", "NISlam", "NISlamConfig", "SPEC", "TrackResult", "track_step"]
+__all__ = ["SPEC", "LoopConfig", "NISlam", "NISlamConfig", "StepReport", "TrackResult", "track_frames", "track_step"]
 
 logger = logging.getLogger(__name__)
 
@@ -272,6 +273,27 @@ class _Keyframe:
     valid: Tensor | None
 
 
+@dataclass
+class _Work:
+    """One frame on its way through the phases of ``track_frames`` (tensors are B = 1 rows)."""
+
+    frame: Frame
+    times: Tensor  # (2,) float64 depth and colour instants
+    R_att: Tensor  # (2, 3, 3) float64 attitude stream at those instants
+    ok: Tensor  # (2,) bool, the stream covers them
+    rgb: Tensor  # (1, 3, H, W) on the device, strided
+    depth: Tensor  # (1, 1, H, W)
+    points: Tensor | None = None  # (1, N, 3) camera-frame points
+    grey: Tensor | None = None  # (1, N)
+    valid: Tensor | None = None  # (1, N) bool
+    n_valid: int = 0  # valid points
+    R_wi: Tensor | None = None  # (3, 3) float64 corrected attitude at the depth instant
+    p_pred: Tensor | None = None  # (3,) constant-velocity prediction, or None
+    track: TrackResult | None = None  # the match the frame concluded with
+    kept: bool = False  # concluded against the keyframe it was matched with (no new keyframe)
+    fuse: bool = False  # to be fused into that keyframe
+
+
 def _geometry_time(frame: Frame) -> float:
     """When the frame's geometry was observed: the depth image's timestamp where it is recorded.
 
@@ -356,6 +378,8 @@ class NISlam:
             rays = undistorted_rays(cam, torch.float32, self.device).view(cam.height, cam.width, 2)
             self.rays = rays[::s, ::s].reshape(-1, 2).contiguous()
             self.distortion = cam.distortion
+        # Systems whose cameras agree here share the rays and the lens: one back-projection call.
+        self._lens_key = None if self.rays is None else (cam, s)
         self.attitude = attitude_stream(sequence, cfg)
         self.R_corr = torch.eye(3, dtype=torch.float64)
         self.keyframes: list[_Keyframe] = []
@@ -391,39 +415,79 @@ class NISlam:
 
     # ------------------------------------------------------------------ tracking
     def track(self, frame: Frame) -> None:
+        """Process one frame: the B = 1 case of ``track_frames``.
+
+        Raises:
+            Whatever one of the frame's phases raised.
+        """
+        error = track_frames([self], [frame]).errors[0]
+        if error is not None:
+            raise error
+
+    # The phases of one frame, in the order ``track_frames`` calls them. Each works on this
+    # sequence alone; the batched stages between them (back-projection, tracking step, fusion)
+    # belong to ``track_frames``.
+    def _begin(self, frame: Frame) -> _Work | None:
+        """Phase 1: the attitude at the depth and colour instants and the images on the device.
+
+        Returns None when the attitude stream has a gap at the frame (counted, not tracked).
+        """
         cfg = self.cfg
-        t0 = self._tic()
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
         times = torch.tensor([_geometry_time(frame), frame.timestamp], dtype=torch.float64)
         R_att, ok = self.attitude.at(times, cfg.attitude_max_gap)
         if not bool(ok[0]):
             self.untracked["attitude_gap"] += 1
-            return
-        R_wi = self.R_corr @ R_att[0]
+            return None
         rgb = frame.rgb.to(self.device)[None]
         depth = frame.depth.to(self.device)[None]
         if cfg.pixel_stride > 1:
             rgb = rgb[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
             depth = depth[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
-        points, grey, valid = rgbd_to_points(rgb, depth, self.intrinsics, rays=self.rays)
-        if cfg.grey_at_depth_time and bool(ok[1]) and float(times[0]) != float(times[1]):
-            R_cd = (R_att[1].T @ R_att[0]).to(points.dtype)[None]  # depth camera -> colour camera
-            grey, valid = sample_grey(rgb, points, valid, R_cd, self.intrinsics, grey_image=grey, distortion=self.distortion)
-        t0 = self._toc("backproject", t0)
-        if int(valid.sum()) < cfg.min_valid_points:
+        return _Work(frame=frame, times=times, R_att=R_att, ok=ok, rgb=rgb, depth=depth)
+
+    def _camera_key(self, work: _Work) -> tuple:
+        """Frames with equal keys are back-projected in one call (same rays, lens and image size)."""
+        return (self._lens_key, tuple(work.rgb.shape[1:]), tuple(work.depth.shape[1:]), work.rgb.device)
+
+    def _resample_grey(self, work: _Work) -> bool:
+        """Whether the frame's grey values are to be sampled at the depth instant (``sample_grey``)."""
+        return self.cfg.grey_at_depth_time and bool(work.ok[1]) and float(work.times[0]) != float(work.times[1])
+
+    def _start_frame(self, work: _Work, n_valid: int) -> bool:
+        """Phase 2, after back-projection: too few points, or the first keyframe. True: track the frame."""
+        cfg = self.cfg
+        if n_valid < cfg.min_valid_points:
             self.untracked["too_few_points"] += 1
-            return
+            return False
+        work.R_wi = self.R_corr @ work.R_att[0]
         if not self.keyframes:
-            T_wi = se3_from_Rt(R_wi, torch.zeros(3, dtype=torch.float64))
-            self._new_keyframe(frame, T_wi, R_att[0], points, grey, valid, rgb)
-            self._record(frame, T_wi)
+            T_wi = se3_from_Rt(work.R_wi, torch.zeros(3, dtype=torch.float64))
+            self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb)
+            self._record(work.frame, T_wi)
             self.psr.append(math.inf)
             self._last = None
-            return
-        res, T_wi = self._track_against_keyframe(points, grey, valid, R_wi)
-        t0 = self._toc("kcc", t0)
-        p_pred = self._predicted_position(frame.timestamp)
-        if self._lost(res, T_wi, p_pred) and self._last is not None:
+            return False
+        return True
+
+    def _track_inputs(self, work: _Work) -> tuple[Tensor, KeyframeMap, KCCFilter, Tensor]:
+        """The current keyframe's side of ``track_step``: (1, 3, 3) rotation, map, filter, (1,) resolution."""
+        kf = self.keyframes[-1]
+        return (kf.T_wk[:3, :3].T @ work.R_wi)[None], kf.map, self._ensure_filter(kf), kf.resolution
+
+    def _pose(self, res: TrackResult, R_wi: Tensor) -> Tensor:
+        """(4, 4) pose of a frame matched against the current keyframe."""
+        kf = self.keyframes[-1]
+        R_wk = kf.T_wk[:3, :3]
+        # The scene content moved by t, so the camera sits at -t in the keyframe attitude frame.
+        p_k = -res.t_content[0].to(torch.float64)
+        return se3_from_Rt(R_wi, kf.T_wk[:3, 3] + R_wk @ p_k)
+
+    def _tracked(self, work: _Work, res: TrackResult) -> bool:
+        """Phase 3: the match against the keyframe. True: match again against a new keyframe."""
+        T_wi = self._pose(res, work.R_wi)
+        work.p_pred = self._predicted_position(work.frame.timestamp)
+        if self._lost(res, T_wi, work.p_pred) and self._last is not None:
             # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
             # so the last well-tracked frame becomes the keyframe and this frame is matched again.
             last = self._last
@@ -431,33 +495,44 @@ class NISlam:
                                last["rgb"], previous=self.keyframes[-1], variance=last["variance"])
             self._rebase_last_frame()
             # A loop closed at that keyframe may have corrected the attitude: apply it.
-            R_wi = self.R_corr @ R_att[0]
-            p_pred = self._predicted_position(frame.timestamp)  # None if that loop reset the history
-            res, T_wi = self._track_against_keyframe(points, grey, valid, R_wi)
-            t0 = self._toc("kcc", t0)
+            work.R_wi = self.R_corr @ work.R_att[0]
+            work.p_pred = self._predicted_position(work.frame.timestamp)  # None if that loop reset the history
+            return True
+        self._conclude(work, res, T_wi)
+        return False
+
+    def _retracked(self, work: _Work, res: TrackResult) -> None:
+        """Phase 3b: the match against the keyframe made from the last well-tracked frame."""
+        self._conclude(work, res, self._pose(res, work.R_wi))
+
+    def _conclude(self, work: _Work, res: TrackResult, T_wi: Tensor) -> None:
+        """Phase 4: keyframe decision and recording; a frame to be fused is marked in ``work.fuse``."""
+        cfg = self.cfg
         kf = self.keyframes[-1]
         psr = float(res.psr[0])
         self.psr.append(psr)
         self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
-        if self._lost(res, T_wi, p_pred):
-            if self._jump(T_wi, p_pred):
+        work.track = res
+        if self._lost(res, T_wi, work.p_pred):
+            if self._jump(T_wi, work.p_pred):
                 # Even the fresh keyframe gives an implausible jump: keep the motion prior.
-                T_wi = se3_from_Rt(R_wi, p_pred)
+                T_wi = se3_from_Rt(work.R_wi, work.p_pred)
                 self.motion_prior_frames += 1
             # Nothing better to match against: the frame starts a keyframe of its own.
-            self._new_keyframe(frame, T_wi, R_att[0], points, grey, valid, rgb, previous=kf, variance=res.variance[0], track=res)
+            self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb,
+                               previous=kf, variance=res.variance[0], track=res)
             self._last = None
         else:
-            if psr > cfg.kcc.T_M:
-                # The filter stays the one trained when the keyframe was created: the paper
-                # trains only on new keyframes, and retraining per fused frame would double the
-                # frame cost.
-                kf.map = fuse_keyframe(kf.map, res.frame, res.index, res.t_content[:, 2], res.matched, res.psr, cfg.kcc.T_M)
-                self.fused += 1
-                self._toc("fusion", t0)
-            self._last = {"frame": frame, "T_wi": T_wi, "R_att": R_att[0], "points": points, "grey": grey, "valid": valid,
-                          "rgb": rgb, "variance": res.variance[0]}
-        self._record(frame, T_wi)
+            # The filter stays the one trained when the keyframe was created: the paper trains
+            # only on new keyframes, and retraining per fused frame would double the frame cost.
+            # ``track_frames`` fuses after every sequence has concluded (batched), which nothing
+            # in between depends on.
+            work.kept = True
+            work.fuse = psr > cfg.kcc.T_M
+            self.fused += int(work.fuse)
+            self._last = {"frame": work.frame, "T_wi": T_wi, "R_att": work.R_att[0], "points": work.points,
+                          "grey": work.grey, "valid": work.valid, "rgb": work.rgb, "variance": res.variance[0]}
+        self._record(work.frame, T_wi)
 
     def _jump(self, T_wi: Tensor, p_pred: Tensor | None) -> bool:
         return p_pred is not None and float((T_wi[:3, 3] - p_pred).norm()) > self.cfg.max_jump_m
@@ -479,14 +554,6 @@ class NISlam:
             return T[1][:3, 3]
         v = (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
         return T[1][:3, 3] + v * (t - t2)
-
-    def _track_against_keyframe(self, points, grey, valid, R_wi) -> tuple[TrackResult, Tensor]:
-        kf = self.keyframes[-1]
-        R_wk = kf.T_wk[:3, :3]
-        res = track_step(points, grey, valid, (R_wk.T @ R_wi)[None], kf.map, self._ensure_filter(kf), kf.resolution, self.cfg.kcc)
-        # The scene content moved by t, so the camera sits at -t in the keyframe attitude frame.
-        p_k = -res.t_content[0].to(torch.float64)
-        return res, se3_from_Rt(R_wi, kf.T_wk[:3, 3] + R_wk @ p_k)
 
     def _rebase_last_frame(self) -> None:
         """The newest recorded frame became a keyframe: express it relative to itself."""
@@ -518,8 +585,10 @@ class NISlam:
         ortho = orthographic_project(points, grey, valid, None, r, size)
         kf = _Keyframe(frame.index, frame.timestamp, T_wi, R_att, r, keyframe_map(ortho), None, points, grey, valid)
         if previous is not None:
-            # The previous keyframe's filter and cloud are no longer needed for tracking.
+            # The previous keyframe's filter and cloud are no longer needed for tracking; its map
+            # may be a row of a batch (``track_frames``) and is given storage of its own.
             previous.filter = None
+            previous.map = _own_storage(previous.map)
         self.keyframes.append(kf)
         self._ensure_filter(kf)
         kid = len(self.keyframes) - 1
@@ -555,7 +624,7 @@ class NISlam:
         desc = feats.descriptors
         if len(desc) == 0:
             return
-        ids, scores = self.mild.query(desc) if len(self.mild) else (torch.zeros(0, dtype=torch.int64), torch.zeros(0))
+        ids, _ = self.mild.query(desc) if len(self.mild) else (torch.zeros(0, dtype=torch.int64), torch.zeros(0))
         self.mild.add(kid, desc)
         best = None
         for cand in ids.tolist():
@@ -702,6 +771,278 @@ class NISlam:
             P = torch.zeros(n, 3, dtype=torch.float64).index_add_(0, inv, P) / cnt[:, None]
             G = torch.zeros(n, dtype=torch.float64).index_add_(0, inv, G) / cnt
         return P.float(), G.float()[:, None].expand(-1, 3).contiguous()
+
+
+# ---------------------------------------------------------------------- many sequences in lockstep
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """What ``track_frames`` did for each system.
+
+    Attributes:
+        errors: per system, the exception one of its phases raised (its state is then undefined
+            and it should be dropped), or None.
+        compute_s: per system, seconds of compute attributed to it: its own phases plus an equal
+            share of every batched call it took part in.
+    """
+
+    errors: list[Exception | None]
+    compute_s: list[float]
+
+
+def track_frames(systems: list[NISlam], frames: list[Frame], max_batch: int | None = None) -> StepReport:
+    """Advance NI-SLAM systems (one per sequence, each started) by one frame each, batching the heavy stages.
+
+    Every system keeps its own keyframes, attitude stream, loop closure and pose graph; only the
+    per-frame tensor work is shared. In order:
+
+    1. each system samples its attitude stream (``NISlam._begin``);
+    2. one ``rgbd_to_points`` (and ``sample_grey`` for the frames that need it) per group of
+       systems with the same camera and image size;
+    3. each system handles too few points and its first keyframe;
+    4. one ``track_step`` for all systems still tracking, against their own current keyframes
+       (maps, filters, resolutions and rotations stacked along B; the orthographic size is
+       fixed by the config, so the shapes agree);
+    5. each system applies its match (``NISlam._tracked``); those that lost their keyframe make
+       one from their last well-tracked frame, and
+    6. one more ``track_step`` matches those again; they conclude (``NISlam._retracked``);
+    7. one ``fuse_keyframe`` for every system whose frame is to be fused.
+
+    Batched outputs stay per system as row views of the batch, so when the same systems meet
+    again in the next step their inputs are usually stacked without a copy. The result of each
+    system equals what ``NISlam.track`` alone gives, to floating-point round-off of the batched
+    kernels (``NISlam.track`` is this function with one system).
+
+    Args:
+        systems: started ``NISlam`` instances.
+        frames: the next frame of each system's sequence.
+        max_batch: the most systems in one batched call; systems are split in consecutive
+            groups of this size (None: all together).
+
+    Returns:
+        StepReport. A phase that raises marks only its own system; a batched call that raises is
+        repeated one system at a time so the failure lands on the system that caused it.
+
+    Raises:
+        ShapeError: ``frames`` does not hold one frame per system.
+        ConfigError: ``max_batch`` is not a positive integer.
+    """
+    if len(frames) != len(systems):
+        raise ShapeError(f"frames: expected one frame per system ({len(systems)}), got {len(frames)}")
+    if max_batch is not None and not (isinstance(max_batch, int) and max_batch >= 1):
+        raise ConfigError(f"max_batch: expected a positive integer or None, got {max_batch!r}")
+    n = len(systems)
+    step = _Step(systems)
+    size = max_batch or max(n, 1)
+    for lo in range(0, n, size):
+        step.advance(list(range(lo, min(lo + size, n))), frames)
+    return StepReport(errors=step.errors, compute_s=step.seconds)
+
+
+class _Step:
+    """Bookkeeping of one ``track_frames`` call: per-system works, errors and seconds."""
+
+    def __init__(self, systems: list[NISlam]) -> None:
+        self.systems = systems
+        self.errors: list[Exception | None] = [None] * len(systems)
+        self.seconds = [0.0] * len(systems)
+        self.works: list[_Work | None] = [None] * len(systems)
+        self.results: dict[int, TrackResult] = {}  # matches waiting for their system's next phase
+
+    def own(self, i: int, stage: str | None, fn, *args):
+        """Run one system's phase: timed, charged to it, and its failure caught. None after a failure."""
+        t0 = time.perf_counter()
+        try:
+            return fn(*args)
+        except Exception as exc:  # noqa: BLE001 - one failing sequence must not stop the others
+            self.errors[i] = exc
+            self.works[i] = None
+            return None
+        finally:
+            dt = time.perf_counter() - t0
+            self.seconds[i] += dt
+            if stage is not None:
+                sys_ = self.systems[i]
+                sys_.stage_ms[stage] = sys_.stage_ms.get(stage, 0.0) + 1000.0 * dt
+
+    def shared(self, items: list[int], stage: str, fn, *args):
+        """Run a batched call for ``items``: its time is split evenly among them. Raises as ``fn``."""
+        t0 = time.perf_counter()
+        try:
+            return fn(*args)
+        finally:
+            share = (time.perf_counter() - t0) / len(items)
+            for i in items:
+                self.seconds[i] += share
+                s = self.systems[i]
+                s.stage_ms[stage] = s.stage_ms.get(stage, 0.0) + 1000.0 * share
+
+    def batched(self, items: list[int], stage: str, fn) -> None:
+        """``fn(items)`` once; if it raises for several items, once per item so the failure is attributed."""
+        if not items:
+            return
+        try:
+            self.shared(items, stage, fn, items)
+        except Exception as exc:  # noqa: BLE001 - see ``own``
+            if len(items) == 1:
+                self.errors[items[0]] = exc
+                self.works[items[0]] = None
+                return
+            for i in items:
+                self.batched([i], stage, fn)
+
+    def advance(self, chunk: list[int], frames: list[Frame]) -> None:
+        systems, works = self.systems, self.works
+        for i in chunk:
+            works[i] = self.own(i, "backproject", systems[i]._begin, frames[i])
+        for group in _groups([i for i in chunk if works[i] is not None], lambda i: systems[i]._camera_key(works[i])):
+            self.batched(group, "backproject", self._backproject)
+        tracking = [i for i in chunk if works[i] is not None and self.own(i, None, systems[i]._start_frame, works[i], works[i].n_valid)]
+        again = []
+        for group in _groups(tracking, self._track_key):
+            self.batched(group, "kcc", self._track)
+            again += [i for i in group if i in self.results and self.own(i, None, systems[i]._tracked, works[i], self.results.pop(i))]
+        for group in _groups(again, self._track_key):
+            self.batched(group, "kcc", self._track)
+            for i in group:
+                if i in self.results:
+                    self.own(i, None, systems[i]._retracked, works[i], self.results.pop(i))
+        kept = [i for i in chunk if works[i] is not None and works[i].kept]
+        for group in _groups(kept, self._track_key):
+            if any(works[i].fuse for i in group):
+                self.batched(group, "fusion", self._fuse)
+
+    def _track_key(self, i: int) -> tuple:
+        """Systems with equal keys share one ``track_step`` (same settings, cloud size and device)."""
+        points = self.works[i].points
+        return (self.systems[i].cfg.kcc, tuple(points.shape[1:]), points.device)
+
+    def _backproject(self, items: list[int]) -> None:
+        systems, works = self.systems, [self.works[i] for i in items]
+        first = systems[items[0]]
+        rgb = _stack_rows([w.rgb for w in works])
+        depth = _stack_rows([w.depth for w in works])
+        intrinsics = _stack_rows([systems[i].intrinsics for i in items])
+        points, grey, valid = rgbd_to_points(rgb, depth, intrinsics, rays=first.rays)
+        need = [k for k, i in enumerate(items) if systems[i]._resample_grey(works[k])]
+        if need:
+            # depth camera -> colour camera, from the attitude stream at the two instants
+            R_cd = torch.stack([works[k].R_att[1].T @ works[k].R_att[0] for k in need]).to(points.dtype)
+            if len(need) == len(items):
+                grey, valid = sample_grey(rgb, points, valid, R_cd, intrinsics, grey_image=grey, distortion=first.distortion)
+            else:
+                idx = torch.tensor(need, device=points.device)
+                g, v = sample_grey(rgb[idx], points[idx], valid[idx], R_cd, intrinsics[idx], grey_image=grey[idx],
+                                   distortion=first.distortion)
+                grey, valid = grey.index_copy(0, idx, g), valid.index_copy(0, idx, v)
+        counts = valid.sum(dim=1).tolist()
+        for k, w in enumerate(works):
+            w.points, w.grey, w.valid = points[k : k + 1], grey[k : k + 1], valid[k : k + 1]
+            w.n_valid = int(counts[k])
+
+    def _track(self, items: list[int]) -> None:
+        systems, works = self.systems, [self.works[i] for i in items]
+        inputs = [systems[i]._track_inputs(w) for i, w in zip(items, works)]
+        kf_map = _stack_dataclass([m for _, m, _, _ in inputs])
+        kf_filter = _stack_dataclass([f for _, _, f, _ in inputs])
+        res = track_step(
+            _stack_rows([w.points for w in works]),
+            _stack_rows([w.grey for w in works]),
+            _stack_rows([w.valid for w in works]),
+            torch.cat([R for R, _, _, _ in inputs]),
+            kf_map,
+            kf_filter,
+            torch.cat([r for _, _, _, r in inputs]),
+            systems[items[0]].cfg.kcc,
+        )
+        if len(items) == 1:
+            self.results[items[0]] = res
+            return
+        for k, i in enumerate(items):
+            # Keep the keyframes as rows of this batch: the next step stacks them without a copy.
+            kf = systems[i].keyframes[-1]
+            kf.map, kf.filter = _row(kf_map, k), _row(kf_filter, k)
+            self.results[i] = _row(res, k)
+
+    def _fuse(self, items: list[int]) -> None:
+        systems, works = self.systems, [self.works[i] for i in items]
+        kcc = systems[items[0]].cfg.kcc
+        tracks = [w.track for w in works]
+        kf_map = _stack_dataclass([systems[i].keyframes[-1].map for i in items])
+        frame = _stack_dataclass([t.frame for t in tracks])
+        t_content = _stack_rows([t.t_content for t in tracks])
+        psr = _stack_rows([t.psr for t in tracks])
+        # Frames kept but not fused ride along with a PSR below T_M: fuse_keyframe returns their
+        # maps unchanged, and every map of the group stays a row of one batch.
+        fuse = torch.tensor([w.fuse for w in works], device=psr.device)
+        psr = torch.where(fuse, psr, torch.full_like(psr, -math.inf))
+        fused = fuse_keyframe(kf_map, frame, _stack_rows([t.index for t in tracks]), t_content[:, 2],
+                              _stack_rows([t.matched for t in tracks]), psr, kcc.T_M)
+        for k, i in enumerate(items):
+            systems[i].keyframes[-1].map = fused if len(items) == 1 else _row(fused, k)
+
+
+def _groups(items: list[int], key) -> list[list[int]]:
+    """Split ``items`` (in order) by ``key``: the systems that can share one batched call."""
+    out: dict[Any, list[int]] = {}
+    for i in items:
+        out.setdefault(key(i), []).append(i)
+    return list(out.values())
+
+
+def _stack_rows(rows: list[Tensor]) -> Tensor:
+    """Concatenate (1, ...) tensors along dim 0, without a copy where they are consecutive rows of one tensor."""
+    first = rows[0]
+    if len(rows) == 1:
+        return first
+    step = first.numel()
+    storage = first.untyped_storage().data_ptr()
+    if all(
+        r.is_contiguous() and r.shape == first.shape and r.dtype == first.dtype and r.device == first.device
+        and r.untyped_storage().data_ptr() == storage and r.storage_offset() == first.storage_offset() + k * step
+        for k, r in enumerate(rows)
+    ):
+        return first.as_strided((len(rows), *first.shape[1:]), (step, *first.stride()[1:]))
+    return torch.cat(rows)
+
+
+def _stack_dataclass(items: list):
+    """Stack frozen dataclasses of (1, ...) tensors (KeyframeMap, KCCFilter, OrthoImages) along B."""
+    if len(items) == 1:
+        return items[0]
+    values = {}
+    for f in dataclasses.fields(items[0]):
+        v = getattr(items[0], f.name)
+        if isinstance(v, Tensor):
+            values[f.name] = _stack_rows([getattr(x, f.name) for x in items])
+        elif dataclasses.is_dataclass(v):
+            values[f.name] = _stack_dataclass([getattr(x, f.name) for x in items])
+        else:
+            values[f.name] = v
+    return type(items[0])(**values)
+
+
+def _row(batch, k: int):
+    """Row ``k`` of a dataclass of (B, ...) tensors, as (1, ...) views."""
+    values = {}
+    for f in dataclasses.fields(batch):
+        v = getattr(batch, f.name)
+        if isinstance(v, Tensor):
+            values[f.name] = v[k : k + 1]
+        elif dataclasses.is_dataclass(v):
+            values[f.name] = _row(v, k)
+        else:
+            values[f.name] = v
+    return type(batch)(**values)
+
+
+def _own_storage(kf_map: KeyframeMap) -> KeyframeMap:
+    """``kf_map`` with tensors that own their storage (not rows pinning a whole batch in memory)."""
+    def own(t: Tensor) -> Tensor:
+        return t.clone() if t.untyped_storage().nbytes() > t.numel() * t.element_size() else t
+
+    return KeyframeMap(grey=own(kf_map.grey), depth=own(kf_map.depth), weight=own(kf_map.weight))
 
 
 def _build(cfg: NISlamConfig, device: str = "cpu", monitor: Monitor | None = None) -> NISlam:
