@@ -1,0 +1,172 @@
+"""Many NI-SLAM sequences in lockstep: one frame of every sequence per step, the heavy stages batched.
+
+``run_lockstep`` is to a group of sequences what ``run_sequence`` is to one: it starts one
+``NISlam`` per sequence, feeds them their frames step by step through ``track_frames`` (one
+batched back-projection, tracking step and fusion per step for all sequences still running)
+and returns one ``RunResult`` per sequence, the same as ``run_sequence`` would have returned for
+it alone up to floating-point round-off of the batched kernels.
+
+Sequences of different lengths leave the active set when they run out of frames (their system
+is finished right away, which frees its maps). A sequence whose start, decode, phase or finish
+raises is returned as that exception; the others go on. Ctrl-C stops every sequence, finishes
+each with what it has computed and marks it ``interrupted``.
+
+Timing:
+    ``wall_s`` of every result is the group's wall-clock time, from the start of the first
+    sequence to the last finish: the frames of all sequences were interleaved, so no shorter
+    span belongs to one of them (``fps_end_to_end`` is thus a sequence's share of the group).
+    ``compute_s`` is a sequence's own work (``start``, its phases of every step, ``finish``)
+    plus an equal share of each batched call it took part in (``StepReport.compute_s``); the
+    sum over sequences is the group's compute time. Time spent waiting for frames (decode) is
+    in neither share but is in ``wall_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+
+from ..data.frame import Frame, Sequence
+from ..errors import ConfigError
+from .base import RunResult, SystemOutput, empty_output
+from .monitor import Monitor
+from .nislam import NISlam, NISlamConfig, track_frames
+
+__all__ = ["DEFAULT_CPU_BATCH", "run_lockstep"]
+
+logger = logging.getLogger(__name__)
+
+# Sequences per batched call on the CPU. Per frame, the tracking step is fastest at a few items
+# per call and slows down beyond (the z-buffer and FFT working sets leave the caches); see
+# ``scripts/bench_batch.py``. On CUDA the whole group is one batch.
+DEFAULT_CPU_BATCH = 4
+
+
+def run_lockstep(
+    system_cfg: NISlamConfig,
+    sequences: list[Sequence],
+    device: str = "cpu",
+    monitors: list[Monitor] | None = None,
+    max_frames: int | None = None,
+    max_batch: int | None = None,
+) -> list[RunResult | BaseException]:
+    """Run NI-SLAM on several sequences at once, one frame of each per step.
+
+    Args:
+        system_cfg: NI-SLAM settings, shared by every sequence.
+        sequences: the sequences; any lengths, cameras and image sizes (sequences that share a
+            camera share the back-projection call, all share the tracking step).
+        device: where tensors live ("cpu", "cuda", ...).
+        monitors: one monitor per sequence, or None for no monitoring.
+        max_frames: stop each sequence after this many frames.
+        max_batch: the most sequences in one batched call; None takes ``DEFAULT_CPU_BATCH`` on
+            the CPU and all sequences on other devices.
+
+    Returns:
+        Per sequence, in order, its ``RunResult`` or the exception that stopped it.
+
+    Raises:
+        ConfigError: an argument is not what it should be (named in the message).
+    """
+    if not isinstance(system_cfg, NISlamConfig):
+        raise ConfigError(f"system_cfg: expected an NISlamConfig, got {type(system_cfg).__name__}")
+    if not isinstance(sequences, (list, tuple)) or not sequences:
+        raise ConfigError(f"sequences: expected a non-empty list of sequences, got {sequences!r}")
+    if monitors is not None and len(monitors) != len(sequences):
+        raise ConfigError(f"monitors: expected one monitor per sequence ({len(sequences)}), got {len(monitors)}")
+    if max_frames is not None and not (isinstance(max_frames, int) and max_frames >= 0):
+        raise ConfigError(f"max_frames: expected a non-negative integer or None, got {max_frames!r}")
+    if max_batch is not None and not (isinstance(max_batch, int) and max_batch >= 1):
+        raise ConfigError(f"max_batch: expected a positive integer or None, got {max_batch!r}")
+    if max_batch is None and str(device).startswith("cpu"):
+        max_batch = DEFAULT_CPU_BATCH
+
+    n = len(sequences)
+    monitors = list(monitors) if monitors is not None else [Monitor() for _ in range(n)]
+    systems = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
+    failed: list[BaseException | None] = [None] * n
+    outputs: list[SystemOutput | None] = [None] * n
+    frames_in: list[Iterator[Frame] | None] = [None] * n
+    processed = [0] * n
+    compute = [0.0] * n
+    interrupted = False
+    t_start = time.perf_counter()
+
+    def finish(i: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            outputs[i] = systems[i].finish()
+        except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
+            failed[i] = exc
+            logger.warning("%s: finish failed: %s", sequences[i].name, exc)
+        compute[i] += time.perf_counter() - t0
+
+    active: list[int] = []
+    try:
+        for i, seq in enumerate(sequences):
+            t0 = time.perf_counter()
+            try:
+                systems[i].start(seq)
+                frames_in[i] = iter(seq)
+                active.append(i)
+            except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
+                failed[i] = exc
+                logger.warning("%s: start failed: %s", seq.name, exc)
+            compute[i] += time.perf_counter() - t0
+        while active:
+            stepping, frames = [], []
+            for i in active:
+                frame = None
+                if max_frames is None or processed[i] < max_frames:
+                    try:
+                        frame = next(frames_in[i])
+                    except StopIteration:
+                        pass
+                    except Exception as exc:  # noqa: BLE001 - a sequence that cannot be read stops alone
+                        failed[i] = exc
+                        logger.warning("%s: reading frame %d failed: %s", sequences[i].name, processed[i], exc)
+                        continue
+                if frame is None:
+                    finish(i)
+                else:
+                    stepping.append(i)
+                    frames.append(frame)
+            if not stepping:
+                break
+            report = track_frames([systems[i] for i in stepping], frames, max_batch)
+            for k, i in enumerate(stepping):
+                compute[i] += report.compute_s[k]
+                if report.errors[k] is not None:
+                    failed[i] = report.errors[k]
+                    logger.warning("%s: frame %d failed: %s", sequences[i].name, frames[k].index, report.errors[k])
+                else:
+                    processed[i] += 1
+            active = [i for i in stepping if failed[i] is None]
+    except KeyboardInterrupt:
+        interrupted = True
+        logger.warning("interrupted; finishing every sequence with what was computed")
+    for i in range(n):
+        if failed[i] is None and outputs[i] is None and frames_in[i] is not None:
+            finish(i)
+    wall_s = time.perf_counter() - t_start
+
+    results: list[RunResult | BaseException] = []
+    for i, seq in enumerate(sequences):
+        if failed[i] is not None:
+            results.append(failed[i])
+            continue
+        # Only a Ctrl-C before its start leaves a sequence without output: it computed nothing.
+        output = outputs[i] if outputs[i] is not None else empty_output()
+        skipped = list(getattr(seq, "skipped", []))
+        results.append(RunResult(
+            output=output,
+            frames_total=len(seq),
+            frames_processed=processed[i],
+            frames_skipped=len(skipped),
+            skipped=skipped,
+            wall_s=wall_s,
+            compute_s=compute[i],
+            interrupted=interrupted,
+        ))
+    return results
