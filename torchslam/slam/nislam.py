@@ -289,9 +289,6 @@ class _Work:
     n_valid: int = 0  # valid points
     R_wi: Tensor | None = None  # (3, 3) float64 corrected attitude at the depth instant
     p_pred: Tensor | None = None  # (3,) constant-velocity prediction, or None
-    track: TrackResult | None = None  # the match the frame concluded with
-    kept: bool = False  # concluded against the keyframe it was matched with (no new keyframe)
-    fuse: bool = False  # to be fused into that keyframe
 
 
 def _geometry_time(frame: Frame) -> float:
@@ -425,7 +422,7 @@ class NISlam:
             raise error
 
     # The phases of one frame, in the order ``track_frames`` calls them. Each works on this
-    # sequence alone; the batched stages between them (back-projection, tracking step, fusion)
+    # sequence alone; the batched stages between them (back-projection, tracking step)
     # belong to ``track_frames``.
     def _begin(self, frame: Frame) -> _Work | None:
         """Phase 1: the attitude at the depth and colour instants and the images on the device.
@@ -506,13 +503,12 @@ class NISlam:
         self._conclude(work, res, self._pose(res, work.R_wi))
 
     def _conclude(self, work: _Work, res: TrackResult, T_wi: Tensor) -> None:
-        """Phase 4: keyframe decision and recording; a frame to be fused is marked in ``work.fuse``."""
+        """Phase 4: keyframe decision, fusion and recording."""
         cfg = self.cfg
         kf = self.keyframes[-1]
         psr = float(res.psr[0])
         self.psr.append(psr)
         self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
-        work.track = res
         if self._lost(res, T_wi, work.p_pred):
             if self._jump(T_wi, work.p_pred):
                 # Even the fresh keyframe gives an implausible jump: keep the motion prior.
@@ -523,13 +519,15 @@ class NISlam:
                                previous=kf, variance=res.variance[0], track=res)
             self._last = None
         else:
-            # The filter stays the one trained when the keyframe was created: the paper trains
-            # only on new keyframes, and retraining per fused frame would double the frame cost.
-            # ``track_frames`` fuses after every sequence has concluded (batched), which nothing
-            # in between depends on.
-            work.kept = True
-            work.fuse = psr > cfg.kcc.T_M
-            self.fused += int(work.fuse)
+            if psr > cfg.kcc.T_M:
+                # The filter stays the one trained when the keyframe was created: the paper
+                # trains only on new keyframes, and retraining per fused frame would double the
+                # frame cost. Fusion runs per sequence: on B = 1 its integer shifts are slice
+                # copies, several times cheaper per frame than the batched gather.
+                t0 = self._tic()
+                kf.map = fuse_keyframe(kf.map, res.frame, res.index, res.t_content[:, 2], res.matched, res.psr, cfg.kcc.T_M)
+                self.fused += 1
+                self._toc("fusion", t0)
             self._last = {"frame": work.frame, "T_wi": T_wi, "R_att": work.R_att[0], "points": work.points,
                           "grey": work.grey, "valid": work.valid, "rgb": work.rgb, "variance": res.variance[0]}
         self._record(work.frame, T_wi)
@@ -804,15 +802,15 @@ def track_frames(systems: list[NISlam], frames: list[Frame], max_batch: int | No
     4. one ``track_step`` for all systems still tracking, against their own current keyframes
        (maps, filters, resolutions and rotations stacked along B; the orthographic size is
        fixed by the config, so the shapes agree);
-    5. each system applies its match (``NISlam._tracked``); those that lost their keyframe make
-       one from their last well-tracked frame, and
-    6. one more ``track_step`` matches those again; they conclude (``NISlam._retracked``);
-    7. one ``fuse_keyframe`` for every system whose frame is to be fused.
+    5. each system applies its match (``NISlam._tracked``: keyframe decision, fusion, loop
+       closure, recording); those that lost their keyframe make one from their last
+       well-tracked frame, and
+    6. one more ``track_step`` matches those again; they conclude (``NISlam._retracked``).
 
-    Batched outputs stay per system as row views of the batch, so when the same systems meet
-    again in the next step their inputs are usually stacked without a copy. The result of each
-    system equals what ``NISlam.track`` alone gives, to floating-point round-off of the batched
-    kernels (``NISlam.track`` is this function with one system).
+    The current keyframes stay per system as row views of the batch they were last stacked in,
+    so while no system of a group changes its keyframe map they are stacked without a copy. The
+    result of each system equals what ``NISlam.track`` alone gives, to floating-point round-off of
+    the batched kernels (``NISlam.track`` is this function with one system).
 
     Args:
         systems: started ``NISlam`` instances.
@@ -908,10 +906,6 @@ class _Step:
             for i in group:
                 if i in self.results:
                     self.own(i, None, systems[i]._retracked, works[i], self.results.pop(i))
-        kept = [i for i in chunk if works[i] is not None and works[i].kept]
-        for group in _groups(kept, self._track_key):
-            if any(works[i].fuse for i in group):
-                self.batched(group, "fusion", self._fuse)
 
     def _track_key(self, i: int) -> tuple:
         """Systems with equal keys share one ``track_step`` (same settings, cloud size and device)."""
@@ -964,23 +958,6 @@ class _Step:
             kf = systems[i].keyframes[-1]
             kf.map, kf.filter = _row(kf_map, k), _row(kf_filter, k)
             self.results[i] = _row(res, k)
-
-    def _fuse(self, items: list[int]) -> None:
-        systems, works = self.systems, [self.works[i] for i in items]
-        kcc = systems[items[0]].cfg.kcc
-        tracks = [w.track for w in works]
-        kf_map = _stack_dataclass([systems[i].keyframes[-1].map for i in items])
-        frame = _stack_dataclass([t.frame for t in tracks])
-        t_content = _stack_rows([t.t_content for t in tracks])
-        psr = _stack_rows([t.psr for t in tracks])
-        # Frames kept but not fused ride along with a PSR below T_M: fuse_keyframe returns their
-        # maps unchanged, and every map of the group stays a row of one batch.
-        fuse = torch.tensor([w.fuse for w in works], device=psr.device)
-        psr = torch.where(fuse, psr, torch.full_like(psr, -math.inf))
-        fused = fuse_keyframe(kf_map, frame, _stack_rows([t.index for t in tracks]), t_content[:, 2],
-                              _stack_rows([t.matched for t in tracks]), psr, kcc.T_M)
-        for k, i in enumerate(items):
-            systems[i].keyframes[-1].map = fused if len(items) == 1 else _row(fused, k)
 
 
 def _groups(items: list[int], key) -> list[list[int]]:
