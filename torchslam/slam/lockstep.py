@@ -33,14 +33,24 @@ from .base import RunResult, SystemOutput, empty_output
 from .monitor import Monitor
 from .nislam import NISlam, NISlamConfig, track_frames
 
-__all__ = ["DEFAULT_CPU_BATCH", "run_lockstep"]
+__all__ = ["CPU_BATCH_PIXELS", "default_max_batch", "run_lockstep"]
 
 logger = logging.getLogger(__name__)
 
-# Sequences per batched call on the CPU. Per frame, the tracking step is fastest at a few items
-# per call and slows down beyond (the z-buffer and FFT working sets leave the caches); see
-# ``scripts/bench_batch.py``. On CUDA the whole group is one batch.
-DEFAULT_CPU_BATCH = 4
+# Orthographic pixels per batched call on the CPU: ``max_batch`` defaults to this over the
+# orthographic image size (at least 1). With one thread on the 2-core development machine the
+# tracking step's time per frame grows with B once a call's images leave the caches: at the
+# default 360 x 480 it is lowest at B = 1 (12 ms/frame; 14-15 ms at B = 4-8), at 180 x 240 and
+# 90 x 120 it falls up to B = 8 (by 10 % and 50 %). See ``scripts/bench_batch.py``. On other
+# devices the whole group is one batch.
+CPU_BATCH_PIXELS = 2**18
+
+
+def default_max_batch(system_cfg: NISlamConfig, device: str, n: int) -> int:
+    """Sequences per batched call when none is given: ``CPU_BATCH_PIXELS`` worth on the CPU, else all ``n``."""
+    if str(device).startswith("cpu"):
+        return max(1, CPU_BATCH_PIXELS // (system_cfg.kcc.ortho_height * system_cfg.kcc.ortho_width))
+    return max(n, 1)
 
 
 def run_lockstep(
@@ -60,8 +70,7 @@ def run_lockstep(
         device: where tensors live ("cpu", "cuda", ...).
         monitors: one monitor per sequence, or None for no monitoring.
         max_frames: stop each sequence after this many frames.
-        max_batch: the most sequences in one batched call; None takes ``DEFAULT_CPU_BATCH`` on
-            the CPU and all sequences on other devices.
+        max_batch: the most sequences in one batched call; None takes ``default_max_batch``.
 
     Returns:
         Per sequence, in order, its ``RunResult`` or the exception that stopped it.
@@ -79,8 +88,8 @@ def run_lockstep(
         raise ConfigError(f"max_frames: expected a non-negative integer or None, got {max_frames!r}")
     if max_batch is not None and not (isinstance(max_batch, int) and max_batch >= 1):
         raise ConfigError(f"max_batch: expected a positive integer or None, got {max_batch!r}")
-    if max_batch is None and str(device).startswith("cpu"):
-        max_batch = DEFAULT_CPU_BATCH
+    if max_batch is None:
+        max_batch = default_max_batch(system_cfg, device, len(sequences))
 
     n = len(sequences)
     monitors = list(monitors) if monitors is not None else [Monitor() for _ in range(n)]
