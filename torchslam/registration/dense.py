@@ -1,0 +1,847 @@
+"""Dense RGB-D registration: photometric + geometric alignment on an image pyramid (paper §IV-A2).
+
+GC-SLAM's dense front-end registers the current frame ``j`` to the reference keyframe ``i`` with
+the dense RGB-D alignment of DVO (Kerl et al., "Robust odometry estimation for RGB-D cameras",
+ICRA 2013, and "Dense visual SLAM for RGB-D cameras", IROS 2013), then keeps the pixels that
+align well as correspondences for FastGO (paper §IV-A2: "correspondences are selected if their
+re-projection error is less than a threshold"; 320x240, about 50,000 per pair).
+
+Method, for B pairs at once:
+
+1. **Working images** (:func:`prepare_dense_frame`). Colour becomes grey (ITU-R 601 weights) and
+   is reduced by an integer factor ``k = max(1, round(W / DenseConfig.width))`` with a k x k box
+   average (640x480 -> 320x240); depth is reduced by a *valid-aware* k x k reduction: the mean of
+   the valid depths of a block, provided their spread ``max - min`` is at most
+   ``depth_merge_tolerance * min``, else the block is invalid, so no depth is a mix of two
+   surfaces. Depth outside ``[min_depth, max_depth]`` is invalid.
+2. **Lens distortion.** A camera with distortion has its working images resampled once to an
+   ideal pinhole image with the same intrinsics (grey bilinearly, depth by nearest neighbour, so
+   still unmixed); everything after that is pinhole. Pixels whose source lies outside the raw
+   image are invalid.
+3. **Pyramid.** ``levels`` levels, finest first: grey by ``kornia.geometry.transform.pyrdown``
+   (5x5 Gaussian, then the 2x2 average), depth by the valid-aware 2x2 reduction, intrinsics by
+   :meth:`PinholeCamera.scaled` (pixel centres at integers, so both reductions are centred on the
+   scaled principal point). Image gradients are kornia's normalised Sobel, in grey levels (or
+   metres) per pixel.
+4. **Warp and residuals.** Each valid-depth pixel ``u`` of frame j gives ``p_j``; with the current
+   ``T_ij`` it lands at ``w = pi(T_ij p_j)`` in frame i. Residuals (DVO):
+   photometric ``r_I = I_i(w) - I_j(u)`` (grey in [0, 1]) and geometric
+   ``r_Z = Z_i(w) - [T_ij p_j]_z`` (metres); ``I_i``, ``Z_i`` and their gradients are sampled
+   bilinearly (``grid_sample``). ``r_I`` counts where ``w`` lies in ``[1, w - 2] x [1, h - 2]``
+   (Sobel never sees the border) and all four bilinear neighbours come from inside the raw
+   image; ``r_Z`` also needs all four neighbours to be *depth-smooth* pixels (their 3x3
+   neighbourhood valid with spread at most ``depth_edge_tolerance * z``), since neither the
+   interpolated depth nor its gradient means anything across a depth edge.
+5. **Gauss-Newton** on SE(3) with the left update ``T_ij <- exp(delta) T_ij``. With
+   ``q = T_ij p_j = (x, y, z)``, ``dq/ddelta = [I, -[q]x]`` and
+   ``J_pi = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]``:
+   ``J_I = grad I_i(w) J_pi dq/ddelta`` and ``J_Z = grad Z_i(w) J_pi dq/ddelta - [0, 0, 1] dq/ddelta``.
+   The geometric residual is first divided by ``(z / 1 m)^p`` (``geometric_depth_power``; Kinect
+   depth noise grows as ``z^2``), a per-pixel weight frozen during each linearisation. Each
+   residual type is then divided by its own robust scale ``sigma`` (re-estimated every iteration
+   for each pair); the normalised errors ``e = r / sigma`` are weighted by
+   ``robust`` (IRLS): ``"student_t"`` (DVO's t-distribution with ``student_t_dof`` degrees of
+   freedom, ``w = (nu + 1) / (nu + e^2)``, ``sigma`` its maximum-likelihood fixed point) or
+   ``"huber"`` (``w = min(1, k / |e|)`` with ``k = huber_k`` and ``sigma = 1.4826 MAD``).
+   The normal equations ``H = sum w_I / sigma_I^2 J_I^T J_I + lambda w_Z c_Z^2 / sigma_Z^2 J_Z^T J_Z``
+   (``c_Z = (z / 1 m)^-p``, ``lambda = geometric_weight``) are built and solved in float64. As in DVO, a step that raises
+   the mean robust cost (with the scales frozen) is undone and that pair stops at the level; a
+   pair also stops when ``|delta| < tol``. Levels run coarse to fine.
+6. **Correspondences** (:func:`dense_correspondences`): at the finest level and the final pose,
+   a pixel of j whose ``r_Z`` is valid and ``|r_Z| < correspondence_threshold * z`` (``z`` the
+   depth of ``T_ij p_j``) pairs ``points_j = p_j`` with ``points_i = Z_i(w) ray(w)``: the point
+   back-projected from the *bilinearly* interpolated depth of frame i at the landing position
+   (so ``points_i`` lies on the viewing ray of ``T_ij p_j``). At most ``max_correspondences`` are
+   kept, evenly spread in raster order (deterministic); each has weight ``1 / z_j^2`` (issue 5),
+   ``z_j`` the depth of ``p_j``. They are summarised as :class:`~torchslam.fastgo.PairStats`.
+
+Convention:
+    ``T_ij`` (..., 4, 4) float64 maps frame-j points into frame i: ``p_i = T_ij p_j``; i is the
+    reference keyframe, j the current frame. ``PairStats`` take ``points_i`` in frame i and
+    ``points_j`` in frame j, so FastGO's residual ``T_wi p_i - T_wj p_j`` vanishes at
+    ``T_wj = T_wi T_ij``.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass, fields, replace
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..fastgo import PairStats
+from ..geometry import (
+    PinholeCamera,
+    backproject_depth,
+    distort_normalized,
+    se3_exp,
+    undistorted_rays,
+)
+
+__all__ = [
+    "DenseConfig",
+    "DenseCorrespondences",
+    "DenseFrame",
+    "DenseLevel",
+    "DenseResult",
+    "DenseRobust",
+    "dense_correspondences",
+    "prepare_dense_frame",
+    "register_dense",
+    "register_dense_frames",
+]
+
+logger = logging.getLogger(__name__)
+
+# Channels of DenseLevel.reference.
+_GREY, _GX, _GY, _Z, _ZX, _ZY, _ZOK, _IOK = range(8)
+# A bilinear sample of a {0, 1} mask counts as "all four neighbours set" above this.
+_ALL_SET = 1.0 - 1e-6
+# Fixed-point iterations of the t-distribution scale per Gauss-Newton iteration.
+_SCALE_ITERATIONS = 5
+# 1.4826 MAD estimates a Gaussian's standard deviation.
+_MAD_TO_SIGMA = 1.4826
+
+
+class DenseRobust(enum.Enum):
+    """Robust weighting of the normalised residuals."""
+
+    STUDENT_T = "student_t"
+    HUBER = "huber"
+
+    @classmethod
+    def parse(cls, value: DenseRobust | str) -> DenseRobust:
+        """Return the member for ``value``; a bad name lists the valid ones."""
+        if isinstance(value, cls):
+            return value
+        try:
+            return cls(str(value).lower())
+        except ValueError:
+            valid = ", ".join(m.value for m in cls)
+            raise ConfigError(f"robust: unknown {value!r}; valid: {valid}") from None
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """Settings of the dense registration (module docstring for the method).
+
+    Attributes:
+        width, height: target working resolution, pixels. The input is reduced by the integer
+            factor ``k = max(1, round(W / width))`` on both axes (remainder rows/columns on the
+            right and bottom are dropped): 640x480 -> 320x240, 540x360 -> 270x180.
+        levels: pyramid levels (the working resolution and ``levels - 1`` halvings).
+        iterations: maximum Gauss-Newton iterations per level, coarse to fine (``levels`` values).
+        geometric_weight: relative weight ``lambda`` of the geometric term. Both terms are
+            divided by their own robust scale first, so it is dimensionless (1 = equal weight of
+            a one-sigma photometric and a one-sigma depth error). 2 was the best of 0, 0.3, 1, 2
+            and 3 over 40 fr1/xyz pairs (5 and 10 frames apart).
+        geometric_depth_power: ``p`` of the depth-noise model: ``r_Z`` is divided by
+            ``(z / 1 m)^p`` before its robust scale is estimated (Kinect depth noise grows as
+            ``z^2``, so 2; 0 treats all depths alike). Far points then no longer dominate the
+            geometric term; on fr1/xyz this removed the gross failures of fast-motion pairs.
+        robust: ``"student_t"`` (DVO) or ``"huber"``.
+        student_t_dof: degrees of freedom ``nu`` of the t-distribution (DVO: 5).
+        huber_k: Huber threshold in units of the scale ``sigma``.
+        sigma_floor_photometric: lower bound of the photometric scale, grey levels in [0, 1]
+            (keeps the weights finite on noise-free images).
+        sigma_floor_geometric: lower bound of the geometric scale, metres (of the normalised
+            residual, i.e. at 1 m depth).
+        min_depth, max_depth: depth outside this range is invalid, metres.
+        depth_merge_tolerance: a block of depths is merged (working image, pyramid) only when
+            their spread is at most this fraction of the smallest; otherwise it is invalid.
+        depth_edge_tolerance: a pixel whose 3x3 depth spread exceeds this fraction of its depth
+            is a depth edge and gives no geometric residual.
+        max_correspondences: at most this many correspondences per pair (evenly subsampled).
+        correspondence_threshold: a pixel is a correspondence when ``|r_Z| < threshold * z``.
+        min_correspondences: a pair with fewer correspondences is reported as failed.
+        tol: a pair stops at a level when its step's twist norm is below this (metres/radians).
+    """
+
+    width: int = 320
+    height: int = 240
+    levels: int = 3
+    iterations: tuple[int, ...] = (20, 15, 10)
+    geometric_weight: float = 2.0
+    geometric_depth_power: float = 2.0
+    robust: str = "student_t"
+    student_t_dof: float = 5.0
+    huber_k: float = 1.345
+    sigma_floor_photometric: float = 1.0 / 255.0
+    sigma_floor_geometric: float = 1e-3
+    min_depth: float = 0.1
+    max_depth: float = 10.0
+    depth_merge_tolerance: float = 0.05
+    depth_edge_tolerance: float = 0.1
+    max_correspondences: int = 50000
+    correspondence_threshold: float = 0.02
+    min_correspondences: int = 1000
+    tol: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height", "levels", "max_correspondences"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"{name}: expected a positive int, got {v!r}")
+        v = self.min_correspondences
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ConfigError(f"min_correspondences: expected a non-negative int, got {v!r}")
+        try:
+            its = tuple(self.iterations)
+        except TypeError:
+            raise ConfigError(f"iterations: expected a sequence of ints, got {self.iterations!r}") from None
+        if len(its) != self.levels or any(isinstance(n, bool) or not isinstance(n, int) or n < 0 for n in its):
+            raise ConfigError(
+                f"iterations: expected {self.levels} non-negative ints (one per level, coarse to fine), got {self.iterations!r}"
+            )
+        object.__setattr__(self, "iterations", its)
+        DenseRobust.parse(self.robust)
+        for name in (
+            "student_t_dof", "huber_k", "sigma_floor_photometric", "sigma_floor_geometric", "min_depth",
+            "depth_merge_tolerance", "depth_edge_tolerance", "correspondence_threshold",
+        ):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ConfigError(f"{name}: expected a positive finite number, got {v!r}")
+        for name in ("geometric_weight", "geometric_depth_power", "tol"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"{name}: expected a non-negative finite number, got {v!r}")
+        if not (isinstance(self.max_depth, (int, float)) and self.max_depth > self.min_depth):
+            raise ConfigError(f"max_depth: expected a number above min_depth={self.min_depth}, got {self.max_depth!r}")
+
+
+def _prep_key(cfg: DenseConfig) -> tuple:
+    """The settings that shape a :class:`DenseFrame` (two frames must agree on them)."""
+    return (cfg.width, cfg.height, cfg.levels, cfg.min_depth, cfg.max_depth, cfg.depth_merge_tolerance, cfg.depth_edge_tolerance)
+
+
+# ---------------------------------------------------------------------------- prepared frames
+
+
+@dataclass(frozen=True)
+class DenseLevel:
+    """One pyramid level of B prepared frames.
+
+    Attributes:
+        camera: ideal pinhole camera of the level (no distortion; size ``w x h``).
+        grey: (B, 1, h, w) grey in [0, 1].
+        depth: (B, 1, h, w) depth, metres, 0 = invalid.
+        reference: (B, 8, h, w) what a frame serves as reference: grey, its x/y gradient (per
+            pixel), depth, its x/y gradient (metres per pixel), the depth-smooth mask and the
+            inside-the-raw-image mask (eroded by one pixel), masks as 0/1.
+        points: (B, h*w, 3) back-projected pixels, metres, row-major (0 where invalid).
+        valid: (B, h*w) bool, valid depth.
+    """
+
+    camera: PinholeCamera
+    grey: Tensor
+    depth: Tensor
+    reference: Tensor
+    points: Tensor
+    valid: Tensor
+
+    def _map(self, fn) -> DenseLevel:
+        return DenseLevel(self.camera, *(fn(getattr(self, f.name)) for f in fields(self)[1:]))
+
+
+@dataclass(frozen=True)
+class DenseFrame:
+    """B frames prepared for dense registration: working-resolution images and their pyramid.
+
+    A keyframe is prepared once and reused against every frame registered to it; index it,
+    :meth:`expand` a single frame to a batch, or :meth:`cat` several.
+
+    Attributes:
+        levels: pyramid, finest (the working resolution) first.
+        camera: the input camera the frames were prepared from.
+        cfg: the settings they were prepared with.
+    """
+
+    levels: tuple[DenseLevel, ...]
+    camera: PinholeCamera
+    cfg: DenseConfig
+
+    def __len__(self) -> int:
+        return self.levels[0].grey.shape[0]
+
+    def __getitem__(self, index) -> DenseFrame:
+        """Select frames by int (kept as a batch of one), slice, list or index tensor."""
+        if isinstance(index, int):
+            index = slice(index, index + 1) if index != -1 else slice(-1, None)
+        return self._map(lambda x: x[index])
+
+    def expand(self, batch: int) -> DenseFrame:
+        """Repeat a single frame ``batch`` times without copying (views)."""
+        if len(self) != 1:
+            raise ShapeError(f"expand: expected a DenseFrame of 1 frame, got {len(self)}")
+        return self._map(lambda x: x.expand(batch, *x.shape[1:]))
+
+    @staticmethod
+    def cat(frames: list[DenseFrame] | tuple[DenseFrame, ...]) -> DenseFrame:
+        """Stack frames prepared with the same camera and settings into one batch."""
+        if len(frames) == 0:
+            raise ShapeError("frames: expected at least one DenseFrame, got none")
+        first = frames[0]
+        for m, f in enumerate(frames[1:], 1):
+            _check_compatible(first, f, f"frames[{m}]")
+        levels = tuple(
+            DenseLevel(lv.camera, *(torch.cat([getattr(f.levels[k], fl.name) for f in frames]) for fl in fields(lv)[1:]))
+            for k, lv in enumerate(first.levels)
+        )
+        return DenseFrame(levels, first.camera, first.cfg)
+
+    def _map(self, fn) -> DenseFrame:
+        return DenseFrame(tuple(lv._map(fn) for lv in self.levels), self.camera, self.cfg)
+
+
+def _check_compatible(a: DenseFrame, b: DenseFrame, name: str) -> None:
+    if _prep_key(a.cfg) != _prep_key(b.cfg) or len(a.levels) != len(b.levels):
+        raise ConfigError(f"{name}: prepared with different settings than the first frame ({_prep_key(b.cfg)} vs {_prep_key(a.cfg)})")
+    if a.levels[0].camera != b.levels[0].camera:
+        raise ShapeError(f"{name}: prepared for camera {b.levels[0].camera}, expected {a.levels[0].camera}")
+    if a.levels[0].grey.dtype != b.levels[0].grey.dtype:
+        raise ShapeError(f"{name}: dtype {b.levels[0].grey.dtype} differs from {a.levels[0].grey.dtype}")
+
+
+def _reduce_depth(depth: Tensor, k: int, tol: float) -> Tensor:
+    """Valid-aware k x k reduction: the mean of a block's valid depths if they agree within ``tol``."""
+    valid = (depth > 0).to(depth.dtype)
+    count = F.avg_pool2d(valid, k) * (k * k)
+    total = F.avg_pool2d(depth * valid, k) * (k * k)
+    big = torch.finfo(depth.dtype).max
+    dmax = F.max_pool2d(torch.where(valid > 0, depth, torch.full_like(depth, -big)), k)
+    dmin = -F.max_pool2d(torch.where(valid > 0, -depth, torch.full_like(depth, -big)), k)
+    ok = (count > 0) & (dmax - dmin <= tol * dmin)
+    return torch.where(ok, total / count.clamp_min(1), torch.zeros_like(total))
+
+
+def _crop(x: Tensor, h: int, w: int) -> Tensor:
+    return x[..., :h, :w]
+
+
+def _level_camera(cam: PinholeCamera, factor: float, w: int, h: int) -> PinholeCamera:
+    return replace(cam.scaled(factor), width=w, height=h)
+
+
+def _min_pool3(x: Tensor) -> Tensor:
+    return -F.max_pool2d(-x, 3, stride=1, padding=1)
+
+
+def _build_level(cam: PinholeCamera, grey: Tensor, depth: Tensor, inside: Tensor, cfg: DenseConfig) -> DenseLevel:
+    g = kornia.filters.spatial_gradient(grey, mode="sobel", normalized=True)[:, 0]  # (B, 2, h, w)
+    valid = depth > 0
+    dz = kornia.filters.spatial_gradient(depth, mode="sobel", normalized=True)[:, 0]
+    big = torch.finfo(depth.dtype).max
+    zmax = F.max_pool2d(torch.where(valid, depth, torch.full_like(depth, -big)), 3, stride=1, padding=1)
+    zmin = -F.max_pool2d(torch.where(valid, -depth, torch.full_like(depth, -big)), 3, stride=1, padding=1)
+    all_valid = _min_pool3(valid.to(depth.dtype)) > 0
+    smooth = all_valid & (zmax - zmin <= cfg.depth_edge_tolerance * depth)
+    inside3 = _min_pool3(inside)
+    reference = torch.cat([grey, g, depth, dz, smooth.to(grey.dtype), inside3], dim=1)
+    points, pvalid = backproject_depth(depth, cam.as_tensor(depth.dtype, depth.device))
+    return DenseLevel(cam, grey, depth, reference, points, pvalid)
+
+
+def prepare_dense_frame(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig | None = None) -> DenseFrame:
+    """Build the working-resolution grey/depth images of B frames and their pyramid.
+
+    Args:
+        rgb: (B, 3, H, W) colour in [0, 1], float32 or float64 (the prepared images keep it).
+        depth: (B, 1, H, W) depth, metres; 0, non-finite or outside ``[min_depth, max_depth]``
+            is invalid.
+        camera: intrinsics of the input images (``width x height`` must be ``W x H``); lens
+            distortion, if any, is removed by resampling (module docstring).
+        cfg: settings (defaults if None).
+
+    Returns:
+        The prepared frames.
+
+    Raises:
+        ShapeError: naming the argument for bad shapes, a camera of another size, or a working
+            resolution too small for the pyramid.
+        DTypeError: for non-float images.
+        ConfigError: for a bad ``cfg``.
+    """
+    cfg = _check_cfg(cfg)
+    d: dict[str, int] = {}
+    check_shape(rgb, "B 3 H W", "rgb", d)
+    check_shape(depth, "B 1 H W", "depth", d)
+    check_float(rgb, "rgb")
+    check_float(depth, "depth")
+    _check_camera(camera, d["W"], d["H"], "camera")
+    return _prepare(rgb, depth.to(rgb.dtype), camera, cfg)
+
+
+def _check_cfg(cfg) -> DenseConfig:
+    if cfg is None:
+        return DenseConfig()
+    if not isinstance(cfg, DenseConfig):
+        raise ConfigError(f"cfg: expected a DenseConfig, got {type(cfg).__name__}")
+    return cfg
+
+
+def _check_camera(camera, W: int, H: int, name: str) -> None:
+    if not isinstance(camera, PinholeCamera):
+        raise ShapeError(f"{name}: expected a PinholeCamera, got {type(camera).__name__}")
+    if (camera.width, camera.height) != (W, H):
+        raise ShapeError(f"{name}: image size {camera.width}x{camera.height} does not match the images' {W}x{H}")
+
+
+def _prepare(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig) -> DenseFrame:
+    H, W = rgb.shape[-2:]
+    k = max(1, round(W / cfg.width))
+    h, w = H // k, W // k
+    if min(h, w) >> (cfg.levels - 1) < 8:
+        raise ShapeError(
+            f"rgb: {W}x{H} images give a {w}x{h} working resolution, too small for {cfg.levels} pyramid levels "
+            "(the coarsest must be at least 8 pixels on each side)"
+        )
+    grey = kornia.color.rgb_to_grayscale(rgb)
+    good = torch.isfinite(depth) & (depth >= cfg.min_depth) & (depth <= cfg.max_depth)
+    depth = torch.where(good, depth, torch.zeros_like(depth))
+    grey = _crop(grey, h * k, w * k)
+    depth = _crop(depth, h * k, w * k)
+    if k > 1:
+        grey = F.avg_pool2d(grey, k)
+        depth = _reduce_depth(depth, k, cfg.depth_merge_tolerance)
+    cam = _level_camera(camera, 1.0 / k, w, h)
+    inside = torch.ones_like(grey)
+    if cam.has_distortion:
+        grey, depth, inside = _undistort(grey, depth, cam)
+    cam = replace(cam, distortion=None)
+
+    levels = [_build_level(cam, grey, depth, inside, cfg)]
+    for _ in range(1, cfg.levels):
+        h2, w2 = grey.shape[-2] // 2, grey.shape[-1] // 2
+        grey = kornia.geometry.transform.pyrdown(_crop(grey, 2 * h2, 2 * w2))
+        depth = _reduce_depth(_crop(depth, 2 * h2, 2 * w2), 2, cfg.depth_merge_tolerance)
+        # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
+        inside = (kornia.geometry.transform.pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
+        cam = _level_camera(cam, 0.5, w2, h2)
+        levels.append(_build_level(cam, grey, depth, inside, cfg))
+    return DenseFrame(tuple(levels), camera, cfg)
+
+
+def _undistort(grey: Tensor, depth: Tensor, cam: PinholeCamera) -> tuple[Tensor, Tensor, Tensor]:
+    """Resample distorted working images onto the ideal pinhole grid of the same intrinsics."""
+    B, _, h, w = grey.shape
+    rays = undistorted_rays(replace(cam, distortion=None), torch.float64, grey.device)  # ideal rays of the output pixels
+    xd = distort_normalized(rays, cam.distortion)
+    u = cam.fx * xd[:, 0] + cam.cx
+    v = cam.fy * xd[:, 1] + cam.cy
+    grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1).to(grey.dtype)
+    grid = grid.reshape(1, h, w, 2).expand(B, h, w, 2)
+    grey_u = F.grid_sample(grey, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    depth_u = F.grid_sample(depth, grid, mode="nearest", padding_mode="zeros", align_corners=True)
+    inside = ((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)).to(grey.dtype).reshape(1, 1, h, w).expand(B, 1, h, w)
+    depth_u = depth_u * inside
+    return grey_u, depth_u, inside.contiguous()
+
+
+# ---------------------------------------------------------------------------- warp and linearisation
+
+
+@dataclass(frozen=True)
+class _Warp:
+    """Frame-j pixels warped into frame i at one level (all (B, N, ...))."""
+
+    q: Tensor          # (B, N, 3) T_ij p_j in frame i
+    uv: Tensor         # (B, N, 2) landing pixel
+    sample: Tensor     # (B, N, 8) reference channels at uv
+    r_I: Tensor        # (B, N) photometric residual (0 where invalid)
+    r_Z: Tensor        # (B, N) geometric residual, metres (0 where invalid)
+    c_Z: Tensor        # (B, N) depth-noise normaliser (z / 1 m)^-p of r_Z
+    m_I: Tensor        # (B, N) bool, photometric residual valid
+    m_Z: Tensor        # (B, N) bool, geometric residual valid
+
+
+def _warp(li: DenseLevel, lj: DenseLevel, T_ij: Tensor, min_depth: float, depth_power: float = 0.0) -> _Warp:
+    dtype = li.grey.dtype
+    B, _, h, w = li.grey.shape
+    T = T_ij.to(dtype)
+    q = lj.points @ T[:, :3, :3].transpose(-1, -2) + T[:, None, :3, 3]  # (B, N, 3)
+    z = q[..., 2]
+    front = lj.valid & (z > min_depth)
+    z_safe = torch.where(front, z, torch.ones_like(z))
+    cam = li.camera
+    u = cam.fx * q[..., 0] / z_safe + cam.cx
+    v = cam.fy * q[..., 1] / z_safe + cam.cy
+    inside = front & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
+    # Points that miss the image are parked at the centre so every sample stays finite.
+    u = torch.where(inside, u, torch.full_like(u, (w - 1) / 2))
+    v = torch.where(inside, v, torch.full_like(v, (h - 1) / 2))
+    grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1)[:, :, None, :]  # (B, N, 1, 2)
+    s = F.grid_sample(li.reference, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    s = s[..., 0].transpose(1, 2)  # (B, N, 8)
+    m_I = inside & (s[..., _IOK] >= _ALL_SET)
+    m_Z = m_I & (s[..., _ZOK] >= _ALL_SET)
+    grey_j = lj.grey.reshape(B, -1)
+    zero = torch.zeros_like(z)
+    r_I = torch.where(m_I, s[..., _GREY] - grey_j, zero)
+    r_Z = torch.where(m_Z, s[..., _Z] - z, zero)
+    c_Z = z_safe.pow(-depth_power) if depth_power else torch.ones_like(z)
+    return _Warp(q, torch.stack([u, v], dim=-1), s, r_I, r_Z, c_Z, m_I, m_Z)
+
+
+def _jacobians(wp: _Warp, cam: PinholeCamera) -> tuple[Tensor, Tensor]:
+    """(B, N, 6) derivatives of r_I and r_Z with respect to the left twist of ``T_ij``."""
+    x, y, z = wp.q.unbind(-1)
+    iz = 1.0 / torch.where(wp.m_I, z, torch.ones_like(z))
+    xz, yz = x * iz, y * iz
+    o = torch.zeros_like(z)
+    fx, fy = cam.fx, cam.fy
+    # d(u, v)/d(delta) = J_pi [I, -[q]x] (module docstring).
+    du = torch.stack([fx * iz, o, -fx * xz * iz, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz], dim=-1)
+    dv = torch.stack([o, fy * iz, -fy * yz * iz, -fy * (1 + yz * yz), fy * xz * yz, fy * xz], dim=-1)
+    dz = torch.stack([o, o, torch.ones_like(z), y, -x, o], dim=-1)
+    s = wp.sample
+    J_I = s[..., _GX, None] * du + s[..., _GY, None] * dv
+    J_Z = s[..., _ZX, None] * du + s[..., _ZY, None] * dv - dz
+    J_I = torch.where(wp.m_I[..., None], J_I, torch.zeros_like(J_I))
+    J_Z = torch.where(wp.m_Z[..., None], J_Z, torch.zeros_like(J_Z))
+    return J_I, J_Z
+
+
+def _linearize(
+    li: DenseLevel, lj: DenseLevel, T_ij: Tensor, min_depth: float, depth_power: float = 0.0
+) -> tuple[_Warp, Tensor, Tensor]:
+    """Residuals and analytic Jacobians of B pairs at one level (module docstring, step 5)."""
+    wp = _warp(li, lj, T_ij, min_depth, depth_power)
+    J_I, J_Z = _jacobians(wp, li.camera)
+    return wp, J_I, J_Z
+
+
+# ---------------------------------------------------------------------------- robust weighting
+
+
+def _masked_mean(x: Tensor, m: Tensor) -> Tensor:
+    return (x * m).sum(-1) / m.sum(-1).clamp_min(1)
+
+
+def _scale(r: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, floor: float, start: Tensor | None) -> Tensor:
+    """(B,) robust scale of residuals ``r`` (B, N) over mask ``m``, float64, at least ``floor``."""
+    r = r.to(torch.float64)
+    mf = m.to(torch.float64)
+    if robust is DenseRobust.HUBER:
+        med = torch.where(m, r.abs(), torch.full_like(r, float("nan"))).nanmedian(dim=-1).values
+        sigma = _MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0)
+        return sigma.clamp_min(floor)
+    nu = cfg.student_t_dof
+    r2 = r * r
+    var = _masked_mean(r2, mf) if start is None else start * start
+    var = var.clamp_min(floor * floor)
+    for _ in range(_SCALE_ITERATIONS):
+        var = _masked_mean(r2 * (nu + 1) / (nu + r2 / var[:, None]), mf).clamp_min(floor * floor)
+    return var.sqrt()
+
+
+def _weight(e: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """IRLS weights of normalised errors ``e``."""
+    if robust is DenseRobust.HUBER:
+        a = e.abs()
+        return torch.where(a > cfg.huber_k, cfg.huber_k / a.clamp_min(cfg.huber_k), torch.ones_like(e))
+    nu = cfg.student_t_dof
+    return (nu + 1) / (nu + e * e)
+
+
+def _rho(e: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """Robust cost of normalised errors (the negative log-likelihood up to a constant)."""
+    if robust is DenseRobust.HUBER:
+        a = e.abs()
+        k = cfg.huber_k
+        return torch.where(a <= k, 0.5 * e * e, k * (a - 0.5 * k))
+    nu = cfg.student_t_dof
+    return 0.5 * (nu + 1) * torch.log1p(e * e / nu)
+
+
+def _normalised_geometric(wp: _Warp) -> Tensor:
+    return wp.r_Z.double() * wp.c_Z.double()
+
+
+def _cost(wp: _Warp, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """(B,) mean robust photometric cost plus ``lambda`` times the mean geometric one."""
+    c_I = _masked_mean(_rho(wp.r_I.double() / s_I[:, None], robust, cfg), wp.m_I.double())
+    c_Z = _masked_mean(_rho(_normalised_geometric(wp) / s_Z[:, None], robust, cfg), wp.m_Z.double())
+    return c_I + cfg.geometric_weight * c_Z
+
+
+def _normal_equations(
+    wp: _Warp, J_I: Tensor, J_Z: Tensor, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig
+) -> tuple[Tensor, Tensor]:
+    """(B, 6, 6) ``H`` and (B, 6) ``g`` in float64 (module docstring, step 5)."""
+    r_I, r_Z = wp.r_I.double(), wp.r_Z.double()
+    c_Z = wp.c_Z.double()
+    a = wp.m_I * _weight(r_I / s_I[:, None], robust, cfg) / (s_I * s_I)[:, None]
+    # The depth-noise normaliser is a frozen per-pixel weight: H takes c_Z^2 J_Z^T J_Z.
+    b = wp.m_Z * _weight(r_Z * c_Z / s_Z[:, None], robust, cfg) * c_Z * c_Z * (cfg.geometric_weight / (s_Z * s_Z))[:, None]
+    J = torch.cat([J_I, J_Z], dim=1).double()  # (B, 2N, 6)
+    wts = torch.cat([a, b], dim=1)  # (B, 2N)
+    r = torch.cat([r_I, r_Z], dim=1)
+    Jw = J * wts[..., None]
+    H = Jw.transpose(-1, -2) @ J
+    g = (Jw.transpose(-1, -2) @ r[..., None])[..., 0]
+    return H, g
+
+
+def _solve(H: Tensor, g: Tensor) -> tuple[Tensor, Tensor]:
+    """Gauss-Newton steps ``-H^-1 g`` (B, 6) and which pairs had a positive-definite ``H``."""
+    L, info = torch.linalg.cholesky_ex(H)
+    ok = info == 0
+    L = torch.where(ok[:, None, None], L, torch.eye(6, dtype=H.dtype, device=H.device).expand_as(L))
+    delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
+    ok = ok & torch.isfinite(delta).all(-1)
+    return torch.where(ok[:, None], delta, torch.zeros_like(delta)), ok
+
+
+# ---------------------------------------------------------------------------- correspondences
+
+
+@dataclass(frozen=True)
+class DenseCorrespondences:
+    """Correspondences of B pairs, padded over the finest level's pixels of frame j.
+
+    Attributes:
+        points_i: (B, N, 3) float64 points in frame i, metres (0 where not selected).
+        points_j: (B, N, 3) float64 matching points in frame j, metres.
+        mask: (B, N) bool, selected correspondences.
+        weights: (B, N) float64 ``1 / z_j^2`` (0 where not selected), 1/m^2.
+    """
+
+    points_i: Tensor
+    points_j: Tensor
+    mask: Tensor
+    weights: Tensor
+
+    def stats(self) -> PairStats:
+        """The FastGO statistics of the selected correspondences (B pairs)."""
+        return PairStats.from_padded(self.points_i, self.points_j, mask=self.mask, weights=self.weights)
+
+
+def _subsample(cand: Tensor, k: int) -> Tensor:
+    """Keep at most ``k`` True entries per row, evenly spread in order (deterministic)."""
+    c = cand.sum(-1, keepdim=True)
+    rank = torch.cumsum(cand.to(torch.int64), dim=-1) - 1
+    cs = c.clamp_min(1)
+    step = (rank + 1) * k // cs > rank * k // cs
+    return cand & ((c <= k) | step)
+
+
+def _correspondences(wp: _Warp, li: DenseLevel, lj: DenseLevel, cfg: DenseConfig) -> DenseCorrespondences:
+    z = wp.q[..., 2]
+    cand = wp.m_Z & (wp.r_Z.abs() < cfg.correspondence_threshold * z)
+    keep = _subsample(cand, cfg.max_correspondences)
+    cam = li.camera
+    u, v = wp.uv.double().unbind(-1)
+    zi = wp.sample[..., _Z].double()
+    points_i = torch.stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi], dim=-1)
+    points_j = lj.points.double()
+    zj = points_j[..., 2]
+    weights = torch.where(keep, 1.0 / torch.where(keep, zj, torch.ones_like(zj)) ** 2, torch.zeros_like(zj))
+    k3 = keep[..., None]
+    return DenseCorrespondences(
+        torch.where(k3, points_i, torch.zeros_like(points_i)),
+        torch.where(k3, points_j, torch.zeros_like(points_j)),
+        keep,
+        weights,
+    )
+
+
+def dense_correspondences(fi: DenseFrame, fj: DenseFrame, T_ij: Tensor, cfg: DenseConfig | None = None) -> DenseCorrespondences:
+    """Select the well-aligned pixels of frame j at the working resolution as correspondences.
+
+    Args:
+        fi: B reference frames (i).
+        fj: B current frames (j), prepared like ``fi``.
+        T_ij: (B, 4, 4) or (4, 4) pose of frame j in frame i (``p_i = T_ij p_j``).
+        cfg: settings (``fi.cfg`` if None); ``correspondence_threshold`` and
+            ``max_correspondences`` apply (module docstring, step 6).
+
+    Returns:
+        The padded correspondences.
+    """
+    cfg, T = _check_pair(fi, fj, T_ij, cfg, "T_ij")
+    wp = _warp(fi.levels[0], fj.levels[0], T, cfg.min_depth)
+    return _correspondences(wp, fi.levels[0], fj.levels[0], cfg)
+
+
+# ---------------------------------------------------------------------------- registration
+
+
+@dataclass
+class DenseResult:
+    """Dense registration of B frame pairs.
+
+    Attributes:
+        T_ij: (B, 4, 4) float64 pose of frame j in frame i (``p_i = T_ij p_j``).
+        success: (B,) bool: a finite pose and at least ``min_correspondences`` correspondences.
+        num_correspondences: (B,) int64 correspondences kept.
+        residual_photometric: (B,) float64 RMS of ``r_I`` over the valid pixels at the final
+            pose and working resolution, grey levels in [0, 1] (inf where none is valid).
+        residual_geometric: (B,) float64 RMS of ``r_Z`` likewise, metres.
+        iterations: (B,) int64 Gauss-Newton steps taken, all levels.
+        stats: FastGO statistics of the B pairs' correspondences (``points_i`` in frame i,
+            ``points_j`` in frame j, weights ``1 / z_j^2``).
+    """
+
+    T_ij: Tensor
+    success: Tensor
+    num_correspondences: Tensor
+    residual_photometric: Tensor
+    residual_geometric: Tensor
+    iterations: Tensor
+    stats: PairStats
+
+    def __len__(self) -> int:
+        return self.T_ij.shape[0]
+
+
+def register_dense(
+    rgb_i: Tensor,
+    depth_i: Tensor,
+    rgb_j: Tensor,
+    depth_j: Tensor,
+    camera: PinholeCamera,
+    T_init: Tensor | None = None,
+    cfg: DenseConfig | None = None,
+) -> DenseResult:
+    """Register B frame pairs densely (photometric + geometric, paper §IV-A2).
+
+    Args:
+        rgb_i: (B, 3, H, W) colour of the reference frames i in [0, 1], float32 or float64.
+        depth_i: (B, 1, H, W) their depth, metres, 0 = invalid.
+        rgb_j: (B, 3, H, W) colour of the current frames j.
+        depth_j: (B, 1, H, W) their depth, metres.
+        camera: the intrinsics of all the images (``W x H``).
+        T_init: (B, 4, 4) or (4, 4) initial ``T_ij`` (identity if None).
+        cfg: settings (defaults if None).
+
+    Returns:
+        Poses, success flags, residuals and the pairs' FastGO statistics.
+
+    Raises:
+        ShapeError: naming the argument for bad shapes or a camera of another size.
+        DTypeError: for non-float images.
+        ConfigError: for a bad ``cfg``.
+
+    Convention:
+        ``p_i = T_ij p_j`` (module docstring).
+    """
+    cfg = _check_cfg(cfg)
+    d: dict[str, int] = {}
+    for x, spec, name in (
+        (rgb_i, "B 3 H W", "rgb_i"), (depth_i, "B 1 H W", "depth_i"), (rgb_j, "B 3 H W", "rgb_j"), (depth_j, "B 1 H W", "depth_j"),
+    ):
+        check_shape(x, spec, name, d)
+        check_float(x, name)
+    _check_camera(camera, d["W"], d["H"], "camera")
+    if T_init is not None:
+        _check_pose(T_init, d["B"], "T_init")
+    fi = _prepare(rgb_i, depth_i.to(rgb_i.dtype), camera, cfg)
+    fj = _prepare(rgb_j.to(rgb_i.dtype), depth_j.to(rgb_i.dtype), camera, cfg)
+    return register_dense_frames(fi, fj, T_init, cfg)
+
+
+def _check_pose(T: Tensor, B: int, name: str) -> Tensor:
+    if isinstance(T, Tensor) and T.dim() == 2:
+        check_shape(T, "4 4", name)
+        T = T.expand(B, 4, 4)
+    check_shape(T, "B 4 4", name, {"B": B})
+    check_float(T, name)
+    return T
+
+
+def _check_pair(
+    fi: DenseFrame, fj: DenseFrame, T_ij: Tensor | None, cfg: DenseConfig | None, pose_name: str
+) -> tuple[DenseConfig, Tensor]:
+    for f, name in ((fi, "fi"), (fj, "fj")):
+        if not isinstance(f, DenseFrame):
+            raise ShapeError(f"{name}: expected a DenseFrame, got {type(f).__name__}")
+    if len(fi) != len(fj):
+        raise ShapeError(f"fj: expected {len(fi)} frames like fi, got {len(fj)}")
+    _check_compatible(fi, fj, "fj")
+    cfg = fi.cfg if cfg is None else _check_cfg(cfg)
+    if _prep_key(cfg) != _prep_key(fi.cfg):
+        raise ConfigError(f"cfg: frames were prepared with {_prep_key(fi.cfg)}, cfg asks for {_prep_key(cfg)}")
+    ref = fi.levels[0].grey
+    if T_ij is None:
+        T = torch.eye(4, dtype=torch.float64, device=ref.device).expand(len(fi), 4, 4)
+    else:
+        T = _check_pose(T_ij, len(fi), pose_name)
+    return cfg, T.to(torch.float64).contiguous()
+
+
+def register_dense_frames(
+    fi: DenseFrame, fj: DenseFrame, T_init: Tensor | None = None, cfg: DenseConfig | None = None
+) -> DenseResult:
+    """Register B prepared pairs (a keyframe's pyramid is prepared once and reused).
+
+    Args:
+        fi: B reference frames i (e.g. ``keyframe.expand(B)``).
+        fj: B current frames j, prepared with the same camera and settings.
+        T_init: (B, 4, 4) or (4, 4) initial ``T_ij`` (identity if None).
+        cfg: settings (``fi.cfg`` if None); its preparation settings must match the frames'.
+
+    Returns:
+        See :func:`register_dense`.
+    """
+    cfg, T = _check_pair(fi, fj, T_init, cfg, "T_init")
+    return _register(fi, fj, T, cfg)
+
+
+def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> DenseResult:
+    robust = DenseRobust.parse(cfg.robust)
+    B = len(fi)
+    iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
+    # Coarse to fine: cfg.iterations[0] belongs to the coarsest level.
+    for level, n_iter in zip(reversed(range(cfg.levels)), cfg.iterations):
+        li, lj = fi.levels[level], fj.levels[level]
+        active = torch.ones(B, dtype=torch.bool, device=T.device)
+        T_prev, prev_cost = T, None
+        s_I = s_Z = None
+        for _ in range(n_iter):
+            if not bool(active.any()):
+                break
+            wp, J_I, J_Z = _linearize(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
+            if prev_cost is not None:
+                # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
+                worse = active & (_cost(wp, s_I, s_Z, robust, cfg) > prev_cost)
+                T = torch.where(worse[:, None, None], T_prev, T)
+                active = active & ~worse
+            s_I = _scale(wp.r_I, wp.m_I, robust, cfg, cfg.sigma_floor_photometric, s_I)
+            s_Z = _scale(_normalised_geometric(wp), wp.m_Z, robust, cfg, cfg.sigma_floor_geometric, s_Z)
+            prev_cost = _cost(wp, s_I, s_Z, robust, cfg)
+            H, g = _normal_equations(wp, J_I, J_Z, s_I, s_Z, robust, cfg)
+            delta, solved = _solve(H, g)
+            step = active & solved
+            T_prev = T
+            T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
+            iterations = iterations + step.to(torch.int64)
+            active = step & (torch.linalg.vector_norm(delta, dim=-1) >= cfg.tol)
+    wp = _warp(fi.levels[0], fj.levels[0], T, cfg.min_depth)
+    corr = _correspondences(wp, fi.levels[0], fj.levels[0], cfg)
+    count = corr.mask.sum(-1)
+    finite = torch.isfinite(T).all(-1).all(-1)
+    success = finite & (count >= cfg.min_correspondences)
+
+    def rms(r: Tensor, m: Tensor) -> Tensor:
+        n = m.sum(-1)
+        val = ((r.double() ** 2 * m).sum(-1) / n.clamp_min(1)).sqrt()
+        return torch.where(n > 0, val, torch.full_like(val, float("inf")))
+
+    result = DenseResult(
+        T_ij=T,
+        success=success,
+        num_correspondences=count,
+        residual_photometric=rms(wp.r_I, wp.m_I),
+        residual_geometric=rms(wp.r_Z, wp.m_Z),
+        iterations=iterations,
+        stats=corr.stats(),
+    )
+    logger.debug("dense registration: %d pairs, %d succeeded", B, int(success.sum()))
+    return result
