@@ -1,4 +1,4 @@
-"""The ``torchslam`` command line: run, eval, info, synth.
+"""The ``torchslam`` command line: run, batch, eval, info, synth.
 
 Each subcommand parses its arguments, calls one library function and prints its result.
 Errors that torchslam raises on purpose print one line naming the file, line or argument and
@@ -71,6 +71,60 @@ def _cmd_run(args) -> int:
     )
     print(f"run folder: {out}")
     return 0
+
+
+def _add_batch(sub) -> None:
+    from .slam.registry import KNOWN_SYSTEMS
+
+    p = sub.add_parser(
+        "batch",
+        help="run a SLAM system on many sequences (resumable; shards over torchrun) and write a summary",
+        description="Exit status: 0 when every sequence is ok or resumed, 1 when any failed, "
+        "2 for a bad argument or config (nothing runs), 130 when interrupted.",
+    )
+    p.add_argument("sources", nargs="+", metavar="SOURCE",
+                   help="a TUM-layout folder, a glob of folders (quoted), 'synthetic' or 'synthetic:K' for K generated sequences")
+    p.add_argument("--system", default=DEFAULT_SYSTEM, help=f"one of {', '.join(KNOWN_SYSTEMS)} (default {DEFAULT_SYSTEM})")
+    p.add_argument("--out", required=True, help="batch folder: one run folder per sequence plus summary.{md,csv,json}")
+    p.add_argument("--batch-size", type=int, default=1,
+                   help="sequences per group; NI-SLAM groups run in lockstep where available (default 1)")
+    p.add_argument("--config", default=None, help="YAML file overriding the system's defaults (see configs/)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override one config value, e.g. --set data.synthetic.frames=100 (repeatable)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop each sequence after this many frames")
+    p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
+
+
+def _cmd_batch(args) -> int:
+    import os
+
+    from .slam.batch import BatchOptions, format_table, run_batch
+    from .slam.registry import get_system
+
+    get_system(args.system)  # fail fast, before any data is touched
+    options = BatchOptions(
+        system=args.system, sources=tuple(args.sources), out=Path(args.out), batch_size=args.batch_size,
+        device=args.device, tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
+    )
+    rank = f"[rank {os.environ['RANK']}] " if "RANK" in os.environ and os.environ.get("WORLD_SIZE", "1") != "1" else ""
+
+    def on_row(row, done, total):
+        ate_m = row["ate_rmse_m"]
+        figures = f", ATE {ate_m * 100:.2f} cm" if ate_m is not None else ""
+        if row["fps_end_to_end"] is not None and row["status"] == "ok":
+            figures += f", {row['fps_end_to_end']:.1f} frames/s"
+        note = f": {row['message']}" if row["status"] == "failed" else ""
+        print(f"{rank}[{done}/{total}] {row['name']}: {row['status']}{figures}{note}", flush=True)
+
+    result = run_batch(options, config_path=args.config, overrides=args.overrides, on_row=on_row)
+    if result.summary_files:
+        print()
+        print(format_table(result.rows, result.totals), end="")
+        print(f"engine: {result.engine}; summary: {result.summary_files[-1]}")
+    if result.interrupted:
+        return 130
+    return 1 if result.failed else 0
 
 
 def _add_eval(sub) -> None:
@@ -161,12 +215,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchslam", description="Batched RGB-D SLAM in PyTorch (GC-SLAM/FastGO, NI-SLAM/KCC).")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_run, _add_eval, _add_info, _add_synth):
+    for add in (_add_run, _add_batch, _add_eval, _add_info, _add_synth):
         add(sub)
     return parser
 
 
-COMMANDS = {"run": _cmd_run, "eval": _cmd_eval, "info": _cmd_info, "synth": _cmd_synth}
+COMMANDS = {
+    "run": _cmd_run,
+    "batch": _cmd_batch,
+    "eval": _cmd_eval,
+    "info": _cmd_info,
+    "synth": _cmd_synth,
+}
 
 
 def main(argv: Seq[str] | None = None) -> int:
