@@ -1,4 +1,4 @@
-"""The ``torchslam`` command line: run, batch, eval, info, synth.
+"""The ``torchslam`` command line: run, batch, report, eval, info, synth.
 
 Each subcommand parses its arguments, calls one library function and prints its result.
 Errors that torchslam raises on purpose print one line naming the file, line or argument and
@@ -127,6 +127,19 @@ def _cmd_batch(args) -> int:
     return 1 if result.failed else 0
 
 
+def _add_report(sub) -> None:
+    p = sub.add_parser("report", help="turn a batch folder into report.md with plots")
+    p.add_argument("dir", help="batch folder written by 'torchslam batch'")
+
+
+def _cmd_report(args) -> int:
+    from .slam.report import write_report
+
+    path = write_report(args.dir)
+    print(f"report: {path}")
+    return 0
+
+
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)")
     p.add_argument("--est", required=True, help="estimated trajectory, TUM format")
@@ -215,7 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchslam", description="Batched RGB-D SLAM in PyTorch (GC-SLAM/FastGO, NI-SLAM/KCC).")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_run, _add_batch, _add_eval, _add_info, _add_synth):
+    for add in (_add_run, _add_batch, _add_report, _add_eval, _add_info, _add_synth):
         add(sub)
     return parser
 
@@ -223,6 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
 COMMANDS = {
     "run": _cmd_run,
     "batch": _cmd_batch,
+    "report": _cmd_report,
     "eval": _cmd_eval,
     "info": _cmd_info,
     "synth": _cmd_synth,

@@ -1,0 +1,248 @@
+"""Turn a batch folder into a Markdown report with plots: the library behind ``torchslam report``.
+
+The report reads ``summary.json`` (or, for a folder of plain ``torchslam run`` folders, every
+sub-folder holding a ``metrics.json``) and writes ``report.md`` beside it, with its images in
+``report/``: ATE RMSE per sequence, frames/s per sequence, and a top view of every sequence's
+estimated trajectory, aligned onto the ground truth (rigidly, as the ATE is computed) where the
+ground truth can be found. "Top" is the plane of the two world axes along which the ground truth
+(else the estimate) moves most, since the datasets disagree on which axis is up; for a camera
+carried around a room that is the floor plane.
+
+Ground truth is looked for, in order, at the run folder's ``metrics.json`` key
+``groundtruth_file`` (``torchslam batch`` writes ``groundtruth.txt`` into every run folder),
+at ``groundtruth.txt`` in the sequence folder ``metrics.json`` names as its ``data``, and, for a
+synthetic run, by evaluating the generator's analytic trajectory with the settings in the run's
+``config.yaml``.
+
+Plots are drawn with matplotlib's object-oriented API on an Agg canvas, so the global pyplot
+state and backend are left alone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..data.trajectory import Trajectory, read_tum_trajectory
+from ..errors import DataFormatError, TorchSlamError
+from .batch import BatchSource, format_table, summary_row, summary_totals
+
+__all__ = ["find_groundtruth", "load_batch", "write_report"]
+
+logger = logging.getLogger(__name__)
+
+ASSETS = "report"
+
+
+def load_batch(batch_dir: str | os.PathLike) -> dict[str, Any]:
+    """Read a batch folder's ``summary.json``, or build the same document from its run folders.
+
+    Raises:
+        DataFormatError: ``batch_dir`` is not a folder, its ``summary.json`` is malformed, or it
+            holds neither a summary nor any run folder.
+    """
+    root = Path(batch_dir)
+    if not root.is_dir():
+        raise DataFormatError(f"{root}: not a folder (expected a batch folder written by 'torchslam batch')")
+    path = root / "summary.json"
+    if path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+        except ValueError as exc:
+            raise DataFormatError(f"{path}: not valid JSON ({exc})") from exc
+        if not isinstance(doc, dict) or not isinstance(doc.get("rows"), list):
+            raise DataFormatError(f"{path}: expected a mapping with a 'rows' list")
+        for i, row in enumerate(doc["rows"]):
+            if not isinstance(row, dict) or not isinstance(row.get("name"), str) or "status" not in row:
+                raise DataFormatError(f"{path}: rows[{i}]: expected a mapping with 'name' and 'status'")
+        return doc
+    rows, systems = [], set()
+    for i, folder in enumerate(sorted(p for p in root.iterdir() if (p / "metrics.json").is_file())):
+        try:
+            metrics = json.loads((folder / "metrics.json").read_text())
+        except ValueError as exc:
+            raise DataFormatError(f"{folder / 'metrics.json'}: not valid JSON ({exc})") from exc
+        systems.add(str(metrics.get("system")))
+        status = "interrupted" if metrics.get("interrupted") else "ok"
+        src = BatchSource(index=i, name=folder.name, spec=str(metrics.get("data", "")), source=str(metrics.get("data", "")))
+        rows.append(summary_row(src, status, metrics))
+    if not rows:
+        raise DataFormatError(f"{root}: no summary.json and no run folders with metrics.json")
+    return {
+        "system": ", ".join(sorted(systems)),
+        "engine": None,
+        "rows": rows,
+        "totals": summary_totals(rows, sum(r["wall_s"] or 0.0 for r in rows)),
+    }
+
+
+def find_groundtruth(run_dir: str | os.PathLike, metrics: Mapping[str, Any]) -> Trajectory | None:
+    """Return the ground truth of a run folder (see the module docstring), or None."""
+    run_dir = Path(run_dir)
+    candidates = []
+    if isinstance(metrics.get("groundtruth_file"), str):
+        candidates.append(run_dir / metrics["groundtruth_file"])  # an absolute path stays absolute
+    data = metrics.get("data")
+    if isinstance(data, str) and data and data != "synthetic":
+        candidates.append(Path(data) / "groundtruth.txt")
+    for path in candidates:
+        if path.is_file():
+            try:
+                return read_tum_trajectory(path)
+            except TorchSlamError as exc:
+                logger.warning("%s: ground truth unreadable: %s", path, exc)
+    if data == "synthetic":
+        return _synthetic_groundtruth(run_dir)
+    return None
+
+
+def _synthetic_groundtruth(run_dir: Path) -> Trajectory | None:
+    import yaml
+
+    from ..config import config_from_dict
+    from ..data.synthetic import SyntheticConfig, synthetic_trajectory
+    from ..geometry import se3_from_Rt
+
+    try:
+        cfg_doc = yaml.safe_load((run_dir / "config.yaml").read_text())
+        cfg = config_from_dict(SyntheticConfig, cfg_doc["data"]["synthetic"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, TorchSlamError) as exc:
+        logger.warning("%s: cannot rebuild the synthetic ground truth (%s)", run_dir, exc)
+        return None
+    t = torch.arange(cfg.frames, dtype=torch.float64) / cfg.fps
+    R, p = synthetic_trajectory(cfg)(t)
+    return Trajectory(t, se3_from_Rt(R, p).detach())
+
+
+def _canvas(width: float, height: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=100)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _bar_chart(path: Path, names: list[str], values: list[float], xlabel: str, title: str) -> None:
+    fig = _canvas(7.0, max(2.0, 0.35 * len(names) + 1.2))
+    ax = fig.add_subplot()
+    y = list(range(len(names)))
+    ax.barh(y, values, color="tab:blue")
+    ax.set_yticks(y, names, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel(xlabel)
+    ax.set_title(title)
+    ax.grid(axis="x", alpha=0.3)
+    for yi, v in zip(y, values):
+        ax.annotate(f"{v:.3g}", (v, yi), xytext=(3, 0), textcoords="offset points", va="center", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def _trajectory_plot(path: Path, name: str, estimate: Trajectory, groundtruth: Trajectory | None) -> str:
+    """Plot the top view of ``estimate`` (aligned onto ``groundtruth`` where possible); return a caption."""
+    from ..eval import ate
+
+    p_est = estimate.positions
+    caption = "estimate in its own world frame (no ground truth found)"
+    p_gt = None
+    if groundtruth is not None and len(groundtruth):
+        # The ground truth over the estimate's time span only (a run may stop early).
+        t0, t1 = float(estimate.timestamps[0]), float(estimate.timestamps[-1])
+        keep = (groundtruth.timestamps >= t0 - 0.05) & (groundtruth.timestamps <= t1 + 0.05)
+        p_gt = groundtruth.positions[keep]
+        try:
+            a = ate(estimate, groundtruth, align="se3")
+            p_est = p_est @ a.T_align[:3, :3].T + a.T_align[:3, 3]
+            caption = f"estimate aligned onto the ground truth (SE(3), {a.matched} poses; ATE RMSE {a.stats['rmse'] * 100:.2f} cm)"
+        except TorchSlamError as exc:
+            caption = f"estimate unaligned: {exc}"
+    ref = p_gt if p_gt is not None and len(p_gt) >= 2 else p_est
+    # Top view: look along the axis over which the reference moves least.
+    spread = ref.std(dim=0) if len(ref) >= 2 else torch.ones(3, dtype=ref.dtype)
+    axes = sorted(int(i) for i in torch.argsort(spread, descending=True)[:2])
+    labels = "xyz"
+    fig = _canvas(5.0, 5.0)
+    ax = fig.add_subplot()
+    if p_gt is not None and len(p_gt):
+        ax.plot(p_gt[:, axes[0]].numpy(), p_gt[:, axes[1]].numpy(), color="0.3", lw=1.5, label="ground truth")
+    ax.plot(p_est[:, axes[0]].numpy(), p_est[:, axes[1]].numpy(), color="tab:red", lw=1.2, label="estimate")
+    ax.plot([float(p_est[0, axes[0]])], [float(p_est[0, axes[1]])], "o", color="tab:red", ms=4)
+    ax.set_xlabel(f"{labels[axes[0]]} (m)")
+    ax.set_ylabel(f"{labels[axes[1]]} (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(name, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    return caption
+
+
+def write_report(batch_dir: str | os.PathLike) -> Path:
+    """Write ``report.md`` and its plots (``report/*.png``) for a batch folder.
+
+    Args:
+        batch_dir: a folder written by ``torchslam batch`` (or one holding run folders).
+
+    Returns:
+        The path of ``report.md``.
+
+    Raises:
+        DataFormatError: as :func:`load_batch`.
+    """
+    root = Path(batch_dir)
+    doc = load_batch(root)
+    rows = doc["rows"]
+    assets = root / ASSETS
+    assets.mkdir(exist_ok=True)
+    totals = doc.get("totals")
+    lines = [f"# torchslam batch report: {doc.get('system')} on {len(rows)} sequences", ""]
+    details = [f"{k} {doc[k]}" for k in ("engine", "batch_size", "device", "world_size") if doc.get(k) is not None]
+    if details:
+        lines += [", ".join(details) + (" (interrupted)" if doc.get("interrupted") else ""), ""]
+    lines += ["## Sequences", "", format_table(rows, totals if isinstance(totals, dict) and "fps_aggregate" in totals else None)]
+
+    with_ate = [(r["name"], r["ate_rmse_m"] * 100) for r in rows if r.get("ate_rmse_m") is not None]
+    lines += ["## ATE RMSE per sequence", ""]
+    if with_ate:
+        _bar_chart(assets / "ate.png", [n for n, _ in with_ate], [v for _, v in with_ate], "ATE RMSE (cm)", "ATE RMSE per sequence (SE(3)-aligned)")
+        lines += [f"![ATE RMSE per sequence]({ASSETS}/ate.png)", ""]
+    else:
+        lines += ["No sequence has an ATE (no ground truth, or no sequence finished).", ""]
+    with_fps = [(r["name"], r["fps_end_to_end"]) for r in rows if r.get("fps_end_to_end") is not None]
+    lines += ["## Frames per second", ""]
+    if with_fps:
+        _bar_chart(assets / "fps.png", [n for n, _ in with_fps], [v for _, v in with_fps], "frames/s (end to end)", "Throughput per sequence")
+        lines += [f"![frames per second]({ASSETS}/fps.png)", ""]
+    else:
+        lines += ["No sequence has a frame rate.", ""]
+
+    lines += ["## Trajectories (top view: the plane of largest motion)", ""]
+    for r in rows:
+        folder = root / r["name"]
+        try:
+            metrics = json.loads((folder / "metrics.json").read_text())
+            estimate = read_tum_trajectory(folder / "trajectory.txt")
+        except (OSError, ValueError, TorchSlamError):
+            continue
+        if len(estimate) == 0:
+            continue
+        png = f"traj-{r['name']}.png"
+        caption = _trajectory_plot(assets / png, r["name"], estimate, find_groundtruth(folder, metrics))
+        lines += [f"### {r['name']}", "", f"![{r['name']}]({ASSETS}/{png})", "", caption + ".", ""]
+
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        lines += ["## Failures", ""]
+        lines += [f"- **{r['name']}** ({r.get('source', '')}): {r.get('message', '')}" for r in failed]
+        lines.append("")
+    path = root / "report.md"
+    path.write_text("\n".join(lines))
+    return path
