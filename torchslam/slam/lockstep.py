@@ -93,7 +93,7 @@ def run_lockstep(
 
     n = len(sequences)
     monitors = list(monitors) if monitors is not None else [Monitor() for _ in range(n)]
-    systems = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
+    systems: list[NISlam | None] = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
     failed: list[BaseException | None] = [None] * n
     outputs: list[SystemOutput | None] = [None] * n
     frames_in: list[Iterator[Frame] | None] = [None] * n
@@ -106,6 +106,7 @@ def run_lockstep(
         t0 = time.perf_counter()
         try:
             outputs[i] = systems[i].finish()
+            systems[i] = None  # its keyframe maps are no longer needed
         except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
             failed[i] = exc
             logger.warning("%s: finish failed: %s", sequences[i].name, exc)
@@ -148,6 +149,7 @@ def run_lockstep(
                 compute[i] += report.compute_s[k]
                 if report.errors[k] is not None:
                     failed[i] = report.errors[k]
+                    systems[i] = None
                     logger.warning("%s: frame %d failed: %s", sequences[i].name, frames[k].index, report.errors[k])
                 else:
                     processed[i] += 1

@@ -27,8 +27,11 @@ Every frame keeps its pose relative to its keyframe and is re-posed after each o
 Tracked poses belong to the depth instants; the reported trajectory is interpolated from them
 at the frames' (colour) timestamps. On TUM fr1/xyz with ground-truth attitude these three
 timing steps took the ATE from 1.91 cm to 1.43 cm (simulated attitude: 2.4 cm to 1.42 cm).
-The tracking step is batched over ``(B, ...)`` tensors; a ``NISlam`` instance runs one sequence
-(B = 1).
+A ``NISlam`` instance runs one sequence. Its per-frame work is split into phases so that several
+instances can advance together (``track_frames``, driven by ``slam.lockstep.run_lockstep``): each
+sequence samples its attitude, one batched back-projection and one batched tracking step serve
+all of them, and each applies its own match (keyframes, fusion, loop closure, pose graph).
+``NISlam.track`` is the same with one sequence.
 """
 
 from __future__ import annotations
@@ -861,8 +864,8 @@ class _Step:
             dt = time.perf_counter() - t0
             self.seconds[i] += dt
             if stage is not None:
-                sys_ = self.systems[i]
-                sys_.stage_ms[stage] = sys_.stage_ms.get(stage, 0.0) + 1000.0 * dt
+                ms = self.systems[i].stage_ms
+                ms[stage] = ms.get(stage, 0.0) + 1000.0 * dt
 
     def shared(self, items: list[int], stage: str, fn, *args):
         """Run a batched call for ``items``: its time is split evenly among them. Raises as ``fn``."""
@@ -873,8 +876,8 @@ class _Step:
             share = (time.perf_counter() - t0) / len(items)
             for i in items:
                 self.seconds[i] += share
-                s = self.systems[i]
-                s.stage_ms[stage] = s.stage_ms.get(stage, 0.0) + 1000.0 * share
+                ms = self.systems[i].stage_ms
+                ms[stage] = ms.get(stage, 0.0) + 1000.0 * share
 
     def batched(self, items: list[int], stage: str, fn) -> None:
         """``fn(items)`` once; if it raises for several items, once per item so the failure is attributed."""
@@ -891,6 +894,7 @@ class _Step:
                 self.batched([i], stage, fn)
 
     def advance(self, chunk: list[int], frames: list[Frame]) -> None:
+        """Take the systems ``chunk`` (indices) through every phase of one frame (see ``track_frames``)."""
         systems, works = self.systems, self.works
         for i in chunk:
             works[i] = self.own(i, "backproject", systems[i]._begin, frames[i])
