@@ -453,7 +453,7 @@ class _Warp:
 
     q: Tensor          # (B, N, 3) T_ij p_j in frame i
     uv: Tensor         # (B, N, 2) landing pixel
-    sample: Tensor     # (B, N, 8) reference channels at uv
+    sample: Tensor     # (B, 8, N) reference channels at uv
     r_I: Tensor        # (B, N) photometric residual (0 where invalid)
     r_Z: Tensor        # (B, N) geometric residual, metres (0 where invalid)
     c_Z: Tensor        # (B, N) depth-noise normaliser (z / 1 m)^-p of r_Z
@@ -478,34 +478,36 @@ def _warp(li: DenseLevel, lj: DenseLevel, T_ij: Tensor, min_depth: float, depth_
     v = torch.where(inside, v, torch.full_like(v, (h - 1) / 2))
     grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1)[:, :, None, :]  # (B, N, 1, 2)
     s = F.grid_sample(li.reference, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    s = s[..., 0].transpose(1, 2)  # (B, N, 8)
-    m_I = inside & (s[..., _IOK] >= _ALL_SET)
-    m_Z = m_I & (s[..., _ZOK] >= _ALL_SET)
+    s = s[..., 0]  # (B, 8, N)
+    m_I = inside & (s[:, _IOK] >= _ALL_SET)
+    m_Z = m_I & (s[:, _ZOK] >= _ALL_SET)
     grey_j = lj.grey.reshape(B, -1)
     zero = torch.zeros_like(z)
-    r_I = torch.where(m_I, s[..., _GREY] - grey_j, zero)
-    r_Z = torch.where(m_Z, s[..., _Z] - z, zero)
+    r_I = torch.where(m_I, s[:, _GREY] - grey_j, zero)
+    r_Z = torch.where(m_Z, s[:, _Z] - z, zero)
     c_Z = z_safe.pow(-depth_power) if depth_power else torch.ones_like(z)
     return _Warp(q, torch.stack([u, v], dim=-1), s, r_I, r_Z, c_Z, m_I, m_Z)
 
 
 def _jacobians(wp: _Warp, cam: PinholeCamera) -> tuple[Tensor, Tensor]:
-    """(B, N, 6) derivatives of r_I and r_Z with respect to the left twist of ``T_ij``."""
+    """(B, N, 6) derivatives of r_I and r_Z with respect to the left twist of ``T_ij``.
+
+    Entries of invalid residuals are finite but meaningless (their weights are 0).
+    """
     x, y, z = wp.q.unbind(-1)
     iz = 1.0 / torch.where(wp.m_I, z, torch.ones_like(z))
-    xz, yz = x * iz, y * iz
-    o = torch.zeros_like(z)
-    fx, fy = cam.fx, cam.fy
-    # d(u, v)/d(delta) = J_pi [I, -[q]x] (module docstring).
-    du = torch.stack([fx * iz, o, -fx * xz * iz, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz], dim=-1)
-    dv = torch.stack([o, fy * iz, -fy * yz * iz, -fy * (1 + yz * yz), fy * xz * yz, fy * xz], dim=-1)
-    dz = torch.stack([o, o, torch.ones_like(z), y, -x, o], dim=-1)
     s = wp.sample
-    J_I = s[..., _GX, None] * du + s[..., _GY, None] * dv
-    J_Z = s[..., _ZX, None] * du + s[..., _ZY, None] * dv - dz
-    J_I = torch.where(wp.m_I[..., None], J_I, torch.zeros_like(J_I))
-    J_Z = torch.where(wp.m_Z[..., None], J_Z, torch.zeros_like(J_Z))
-    return J_I, J_Z
+
+    def twist_jacobian(gu: Tensor, gv: Tensor, dz: float) -> Tensor:
+        # Gradient g of the residual with respect to q = T_ij p_j: (gu, gv) J_pi, minus dz d(z)/dq.
+        # With dq = rho + phi x q, dr = g . rho + (q x g) . phi, so J = [g, q x g].
+        g0, g1 = gu * (cam.fx * iz), gv * (cam.fy * iz)
+        g2 = -(g0 * x + g1 * y) * iz - dz
+        # Stacked channel-first (contiguous rows), returned as a (B, N, 6) view.
+        J = torch.stack([g0, g1, g2, y * g2 - z * g1, z * g0 - x * g2, x * g1 - y * g0], dim=1)  # (B, 6, N)
+        return J.transpose(1, 2)
+
+    return twist_jacobian(s[:, _GX], s[:, _GY], 0.0), twist_jacobian(s[:, _ZX], s[:, _ZY], 1.0)
 
 
 def _linearize(
@@ -525,13 +527,12 @@ def _masked_mean(x: Tensor, m: Tensor) -> Tensor:
 
 
 def _scale(r: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, floor: float, start: Tensor | None) -> Tensor:
-    """(B,) robust scale of residuals ``r`` (B, N) over mask ``m``, float64, at least ``floor``."""
-    r = r.to(torch.float64)
-    mf = m.to(torch.float64)
+    """(B,) robust scale of residuals ``r`` (B, N) over mask ``m``, at least ``floor``."""
     if robust is DenseRobust.HUBER:
         med = torch.where(m, r.abs(), torch.full_like(r, float("nan"))).nanmedian(dim=-1).values
         sigma = _MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0)
         return sigma.clamp_min(floor)
+    mf = m.to(r.dtype)
     nu = cfg.student_t_dof
     r2 = r * r
     var = _masked_mean(r2, mf) if start is None else start * start
@@ -561,31 +562,30 @@ def _rho(e: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
 
 
 def _normalised_geometric(wp: _Warp) -> Tensor:
-    return wp.r_Z.double() * wp.c_Z.double()
+    return wp.r_Z * wp.c_Z
 
 
 def _cost(wp: _Warp, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
-    """(B,) mean robust photometric cost plus ``lambda`` times the mean geometric one."""
-    c_I = _masked_mean(_rho(wp.r_I.double() / s_I[:, None], robust, cfg), wp.m_I.double())
-    c_Z = _masked_mean(_rho(_normalised_geometric(wp) / s_Z[:, None], robust, cfg), wp.m_Z.double())
-    return c_I + cfg.geometric_weight * c_Z
+    """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one."""
+    c_I = _masked_mean(_rho(wp.r_I / s_I[:, None], robust, cfg), wp.m_I.to(s_I.dtype))
+    c_Z = _masked_mean(_rho(_normalised_geometric(wp) / s_Z[:, None], robust, cfg), wp.m_Z.to(s_Z.dtype))
+    return (c_I + cfg.geometric_weight * c_Z).double()
 
 
 def _normal_equations(
     wp: _Warp, J_I: Tensor, J_Z: Tensor, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig
 ) -> tuple[Tensor, Tensor]:
-    """(B, 6, 6) ``H`` and (B, 6) ``g`` in float64 (module docstring, step 5)."""
-    r_I, r_Z = wp.r_I.double(), wp.r_Z.double()
-    c_Z = wp.c_Z.double()
-    a = wp.m_I * _weight(r_I / s_I[:, None], robust, cfg) / (s_I * s_I)[:, None]
-    # The depth-noise normaliser is a frozen per-pixel weight: H takes c_Z^2 J_Z^T J_Z.
-    b = wp.m_Z * _weight(r_Z * c_Z / s_Z[:, None], robust, cfg) * c_Z * c_Z * (cfg.geometric_weight / (s_Z * s_Z))[:, None]
-    J = torch.cat([J_I, J_Z], dim=1).double()  # (B, 2N, 6)
-    wts = torch.cat([a, b], dim=1)  # (B, 2N)
-    r = torch.cat([r_I, r_Z], dim=1)
-    Jw = J * wts[..., None]
-    H = Jw.transpose(-1, -2) @ J
-    g = (Jw.transpose(-1, -2) @ r[..., None])[..., 0]
+    """(B, 6, 6) ``H`` and (B, 6) ``g``, accumulated in float64 (module docstring, step 5)."""
+    rn_Z = _normalised_geometric(wp)
+    a = wp.m_I * _weight(wp.r_I / s_I[:, None], robust, cfg) / (s_I * s_I)[:, None]
+    # The depth-noise normaliser c_Z is a frozen per-pixel weight: H takes c_Z^2 J_Z^T J_Z.
+    b = wp.m_Z * _weight(rn_Z / s_Z[:, None], robust, cfg) * (cfg.geometric_weight / (s_Z * s_Z))[:, None]
+    sa, sb = a.sqrt(), b.sqrt() * wp.c_Z
+    # Square-root-weighted Jacobian rows and residuals of both terms, (B, 6, 2N) and (B, 2N).
+    Jw = torch.cat([J_I.transpose(1, 2) * sa[:, None, :], J_Z.transpose(1, 2) * sb[:, None, :]], dim=2).double()
+    rw = torch.cat([wp.r_I * sa, wp.r_Z * sb], dim=1).double()
+    H = Jw @ Jw.transpose(1, 2)
+    g = (Jw @ rw[..., None])[..., 0]
     return H, g
 
 
@@ -638,7 +638,7 @@ def _correspondences(wp: _Warp, li: DenseLevel, lj: DenseLevel, cfg: DenseConfig
     keep = _subsample(cand, cfg.max_correspondences)
     cam = li.camera
     u, v = wp.uv.double().unbind(-1)
-    zi = wp.sample[..., _Z].double()
+    zi = wp.sample[:, _Z].double()
     points_i = torch.stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi], dim=-1)
     points_j = lj.points.double()
     zj = points_j[..., 2]
