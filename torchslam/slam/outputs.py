@@ -25,7 +25,7 @@ from ..data.trajectory import Trajectory, write_tum_trajectory
 from ..environment import environment_info
 from .base import RunResult
 
-__all__ = ["write_run", "write_ply", "METRIC_KEYS"]
+__all__ = ["write_run", "write_ply", "voxel_downsample", "METRIC_KEYS"]
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +46,29 @@ METRIC_KEYS = (
     "interrupted",
     "ate_rmse_m",
 )
+
+
+def voxel_downsample(points: torch.Tensor, colors: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Average the points and colours that fall into the same cubic voxel.
+
+    Args:
+        points: (P, 3) world points, metres.
+        colors: (P, 3) colours in [0, 1].
+        voxel: voxel edge, metres (<= 0: no downsampling).
+
+    Returns:
+        (points (Q, 3) float32, colors (Q, 3) float32), Q <= P, ordered by voxel key.
+    """
+    P = points.to(torch.float64)
+    C = colors.to(torch.float64)
+    if voxel > 0 and len(P):
+        key = torch.floor(P / voxel).to(torch.int64)
+        _, inv = torch.unique(key, dim=0, return_inverse=True)
+        n = int(inv.max()) + 1
+        cnt = torch.zeros(n, dtype=torch.float64, device=P.device).index_add_(0, inv, torch.ones_like(P[:, 0]))
+        P = torch.zeros(n, 3, dtype=torch.float64, device=P.device).index_add_(0, inv, P) / cnt[:, None]
+        C = torch.zeros(n, 3, dtype=torch.float64, device=P.device).index_add_(0, inv, C) / cnt[:, None]
+    return P.float(), C.float()
 
 
 def write_ply(path: str | os.PathLike, points: torch.Tensor, colors: torch.Tensor | None = None) -> None:

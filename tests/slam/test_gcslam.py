@@ -1,0 +1,175 @@
+"""GC-SLAM end to end: synthetic sequences with exact ground truth, fr1/xyz, loops, bad input."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from torchslam.config import config_from_dict, load_config
+from torchslam.data import Frame, Trajectory
+from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+from torchslam.data.tum import TUMSequence
+from torchslam.errors import ConfigError
+from torchslam.eval import ate
+from torchslam.fastgo import PairStats
+from torchslam.fastgo.synthetic import make_correspondences
+from torchslam.geometry import se3_exp, se3_inverse
+from torchslam.slam import run_sequence
+from torchslam.slam import gcslam as gc
+from torchslam.slam.gcslam import GCSlam, GCSlamConfig
+
+from ..conftest import REPO_ROOT
+
+SMALL = dict(width=320, height=240)
+
+
+def _run(seq, **cfg):
+    cfg = config_from_dict(GCSlamConfig, {"threaded": False, **cfg})
+    result = run_sequence(GCSlam(cfg), seq)
+    out = result.output
+    return result, ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
+
+
+def test_yaml_defaults_equal_code_defaults():
+    assert load_config(GCSlamConfig, REPO_ROOT / "configs" / "gcslam.yaml") == GCSlamConfig()
+
+
+@pytest.mark.parametrize("trajectory", ["translate", "orbit"])
+def test_sparse_tracks_synthetic_translation_and_rotation(trajectory):
+    seq = generate_sequence(SyntheticConfig(frames=60, trajectory=trajectory, seed=1, **SMALL))
+    result, a = _run(seq, loops=False)
+    out = result.output
+    assert len(out.T_wc) == 60 and torch.isfinite(out.T_wc).all()
+    assert out.metrics["tracking"]["lost_frames"] == 0
+    assert len(out.keyframe_indices) >= 2
+    # Exact geometry up to Kinect-like depth noise: millimetre-level drift over 2 s.
+    assert a.stats["rmse"] < 0.01, a.stats
+
+
+def test_dense_tracks_synthetic_sequence():
+    seq = generate_sequence(SyntheticConfig(frames=40, trajectory="translate", seed=2, **SMALL))
+    result, a = _run(seq, frontend="dense", loops=False)
+    assert result.output.metrics["frontend"] == "dense"
+    assert result.output.metrics["tracking"]["lost_frames"] == 0
+    assert a.stats["rmse"] < 0.01, a.stats
+
+
+def test_loop_closure_is_found_accepted_and_lowers_error():
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL))
+    with_loops, a_loop = _run(seq)
+    without, a_none = _run(seq, loops=False)
+    loops = with_loops.output.metrics["loops"]
+    assert loops["accepted"] >= 1, loops
+    assert with_loops.output.metrics["pairs"]["loop"] >= 1
+    assert a_loop.stats["rmse"] <= a_none.stats["rmse"] + 1e-4, (a_loop.stats["rmse"], a_none.stats["rmse"])
+
+
+def test_threaded_optimisation_equals_synchronous():
+    seq = generate_sequence(SyntheticConfig(frames=40, trajectory="orbit", seed=3, **SMALL))
+    sync = run_sequence(GCSlam(GCSlamConfig(threaded=False)), seq).output
+    thr = run_sequence(GCSlam(GCSlamConfig(threaded=True)), seq).output
+    assert torch.equal(sync.keyframe_indices, thr.keyframe_indices)
+    torch.testing.assert_close(thr.T_wc, sync.T_wc, rtol=0, atol=1e-12)
+
+
+def _optimizer_with_route(n=8):
+    """An optimiser that has taken n keyframes along a planted noise-free arc."""
+    k = torch.arange(n, dtype=torch.float64)
+    xi = torch.stack([0.3 * k, 0.05 * k, torch.zeros_like(k), torch.zeros_like(k), 0.1 * k, torch.zeros_like(k)], -1)
+    T_gt = se3_exp(xi)
+    opt = gc._Optimizer(GCSlamConfig(threaded=False), gc.Monitor())
+    feats = gc.FrameFeatures(torch.zeros(0, 2), torch.zeros(0, 32, dtype=torch.uint8), torch.zeros(0, 3, dtype=torch.float64),
+                             torch.zeros(0, dtype=torch.bool))
+    pairs = torch.stack([torch.arange(n - 1), torch.arange(1, n)], -1)
+    p_i, p_j = make_correspondences(T_gt, pairs, 50, 0.0, torch.Generator().manual_seed(0))
+    for k in range(n):
+        if k == 0:
+            ev = gc._KeyframeEvent(0, None, None, None, feats, None)
+        else:
+            stats = PairStats.from_padded(p_i[k - 1 : k], p_j[k - 1 : k])
+            ev = gc._KeyframeEvent(k, k - 1, se3_inverse(T_gt[k - 1]) @ T_gt[k], stats, feats, None)
+        opt.insert(ev)
+    return opt, T_gt
+
+
+def test_planted_false_loop_is_rejected_and_true_loop_accepted(monkeypatch):
+    opt, T_gt = _optimizer_with_route()
+    n = len(T_gt)
+    before = torch.stack(opt.T_wk).clone()
+    torch.testing.assert_close(before, T_gt, rtol=0, atol=1e-9)
+
+    def fake_registration(T_true, offset):
+        def register(fi, fj, cfg, generator):
+            # Correspondences that a wrong place would give: the true points of keyframe 0
+            # paired with points shifted by ``offset`` in the new keyframe.
+            g = torch.Generator().manual_seed(5)
+            p0 = torch.rand(1, 80, 3, generator=g, dtype=torch.float64) * 2 + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+            Tk0 = se3_inverse(T_true)  # frame 0 -> frame n-1
+            pk = p0 @ Tk0[:3, :3].T + Tk0[:3, 3] + offset
+            stats = PairStats.from_padded(p0, pk)
+            return type("R", (), {"success": torch.tensor([True]), "stats": stats})()
+        return register
+
+    T_0k = se3_inverse(T_gt[0]) @ T_gt[n - 1]
+    monkeypatch.setattr(gc, "register_sparse_batch", fake_registration(T_0k, torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)))
+    opt._close_loops(n - 1, [0])
+    assert opt.loops == {"candidates": 1, "registered": 1, "accepted": 0, "rejected": 1}
+    torch.testing.assert_close(torch.stack(opt.T_wk), before, rtol=0, atol=0)
+    assert "loop" not in opt.pair_kind
+
+    monkeypatch.setattr(gc, "register_sparse_batch", fake_registration(T_0k, torch.zeros(3, dtype=torch.float64)))
+    opt._close_loops(n - 1, [0])
+    assert opt.loops["accepted"] == 1 and opt.pair_kind.count("loop") == 1
+    torch.testing.assert_close(torch.stack(opt.T_wk), T_gt, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("frontend,limit_m", [("sparse", 0.03), ("dense", 0.03)])
+def test_tum_fr1_xyz(shared_data, frontend, limit_m):
+    seq = TUMSequence(shared_data / "tum_fr1_xyz", end=100, prefetch=2)
+    result, a = _run(seq, frontend=frontend)
+    out = result.output
+    assert len(out.T_wc) == len(seq)
+    assert out.metrics["tracking"]["lost_frames"] <= 2
+    assert a.stats["rmse"] < limit_m, a.stats
+
+
+class _Frames:
+    """A sequence made of given frames (camera and ground truth from another sequence)."""
+
+    def __init__(self, base, frames):
+        self.name, self.camera, self.groundtruth = "edited", base.camera, None
+        self.frames = frames
+        self.timestamps = torch.tensor([f.timestamp for f in frames], dtype=torch.float64)
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, i):
+        return self.frames[i]
+
+    def __iter__(self):
+        return iter(self.frames)
+
+
+def test_frames_without_depth_and_unrelated_frames_do_not_crash():
+    base = generate_sequence(SyntheticConfig(frames=24, trajectory="translate", seed=4, **SMALL))
+    frames = [base[i] for i in range(len(base))]
+    frames[5] = dataclasses.replace(frames[5], depth=torch.zeros_like(frames[5].depth))
+    g = torch.Generator().manual_seed(0)
+    for i in range(10, 22):  # noise images: nothing to register against
+        frames[i] = dataclasses.replace(frames[i], rgb=torch.rand(frames[i].rgb.shape, generator=g))
+    out = run_sequence(GCSlam(GCSlamConfig(threaded=False, max_lost=3)), _Frames(base, frames)).output
+    t = out.metrics["tracking"]
+    assert t["no_depth"] == 1
+    assert t["lost_frames"] >= 1 and t["unlinked_keyframes"] >= 1
+    assert torch.isfinite(out.T_wc).all()
+    assert len(out.T_wc) == len(frames)
+
+
+def test_bad_config_values_name_the_key():
+    with pytest.raises(ConfigError, match="frontend"):
+        GCSlamConfig(frontend="icp")
+    with pytest.raises(ConfigError, match="keyframe_displacement"):
+        config_from_dict(GCSlamConfig, {"keyframe_displacement": 0})
+    with pytest.raises(ConfigError, match="sparse.nope"):
+        config_from_dict(GCSlamConfig, {"sparse": {"nope": 1}})
