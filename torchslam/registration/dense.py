@@ -684,7 +684,7 @@ class DenseResult:
         residual_photometric: (B,) float64 RMS of ``r_I`` over the valid pixels at the final
             pose and working resolution, grey levels in [0, 1] (inf where none is valid).
         residual_geometric: (B,) float64 RMS of ``r_Z`` likewise, metres.
-        iterations: (B,) int64 Gauss-Newton steps taken, all levels.
+        iterations: (B,) int64 Gauss-Newton steps kept (undone ones not counted), all levels.
         stats: FastGO statistics of the B pairs' correspondences (``points_i`` in frame i,
             ``points_j`` in frame j, weights ``1 / z_j^2``).
     """
@@ -812,6 +812,7 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
                 # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
                 worse = active & (_cost(wp, s_I, s_Z, robust, cfg) > prev_cost)
                 T = torch.where(worse[:, None, None], T_prev, T)
+                iterations = iterations - worse.to(torch.int64)
                 active = active & ~worse
             s_I = _scale(wp.r_I, wp.m_I, robust, cfg, cfg.sigma_floor_photometric, s_I)
             s_Z = _scale(_normalised_geometric(wp), wp.m_Z, robust, cfg, cfg.sigma_floor_geometric, s_Z)
@@ -843,5 +844,6 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
         iterations=iterations,
         stats=corr.stats(),
     )
-    logger.debug("dense registration: %d pairs, %d succeeded", B, int(success.sum()))
+    if logger.isEnabledFor(logging.DEBUG):
+        logger.debug("dense registration: %d pairs, %d succeeded", B, int(success.sum()))
     return result
