@@ -18,6 +18,7 @@ from torchslam.geometry import (
     se3_inverse,
     se3_log,
     umeyama_alignment,
+    undistorted_rays,
 )
 from torchslam.registration.sparse import (
     FrameFeatures,
@@ -423,6 +424,16 @@ def test_frame_features_undistort_along_the_lens_model():
     uv = torch.stack([xd[:, 0] * cam.fx + cam.cx, xd[:, 1] * cam.fy + cam.cy], -1)
     torch.testing.assert_close(uv, f.keypoints.double(), rtol=0, atol=1e-6)
     assert float((f.points[:, 2] - 2.0).abs().max()) == 0.0
+    # Rays interpolated from the camera's precomputed ray grid: the same points, and the
+    # interpolation is exact on a distortion-free camera.
+    fr = frame_features(rgb, depth, cam, rays=undistorted_rays(cam))
+    torch.testing.assert_close(fr.points, f.points, rtol=0, atol=1e-5)
+    pin = PinholeCamera(129.3, 129.1, 79.65, 63.8, W, H)
+    torch.testing.assert_close(
+        frame_features(rgb, depth, pin, rays=undistorted_rays(pin)).points, frame_features(rgb, depth, pin).points, rtol=0, atol=1e-12
+    )
+    with pytest.raises(ShapeError, match="rays"):
+        frame_features(rgb, depth, cam, rays=torch.zeros(10, 2, dtype=F64))
 
 
 def test_frame_features_zero_keypoints_and_registration_of_an_empty_frame():

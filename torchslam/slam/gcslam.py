@@ -385,7 +385,7 @@ class GCSlam:
             self._record_lost(frame)
             return
         need_orb = cfg.frontend == "sparse" or not self.keyframes or self._need_unlinked
-        feats = frame_features(rgb, depth, self.camera, self.orb_cfg, cfg.sparse) if need_orb else None
+        feats = self._features(rgb, depth) if need_orb else None
         t0 = self._toc("orb_extraction", t0) if need_orb else t0
         dense_frame = prepare_dense_frame(rgb[None], depth[None], self.camera, cfg.dense) if cfg.frontend == "dense" else None
         if cfg.frontend == "dense":
@@ -415,12 +415,15 @@ class GCSlam:
         t0 = self._toc("keyframe_decision", t0)
         if moved > cfg.keyframe_displacement * self.camera.fx:
             if feats is None:
-                feats = frame_features(rgb, depth, self.camera, self.orb_cfg, cfg.sparse)
+                feats = self._features(rgb, depth)
                 t0 = self._toc("orb_extraction", t0)
             self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=kf.kf, T_ref=T_kf, stats=stats)
             self._toc("keyframe_insertion", t0)
             return
         self._record(frame, kf.kf, T_kf)
+
+    def _features(self, rgb: Tensor, depth: Tensor) -> FrameFeatures:
+        return frame_features(rgb, depth, self.camera, self.orb_cfg, self.cfg.sparse, rays=self.rays)
 
     def _displacement(self, kf: _TrackKeyframe, T_kf_frame: Tensor) -> float:
         """Mean pixel displacement of the keyframe's sample points seen from the frame."""
@@ -439,7 +442,7 @@ class GCSlam:
         recent = self.keyframes[-cfg.relocalize_keyframes:] if cfg.relocalize_keyframes else []
         if recent:
             if feats is None:
-                feats = frame_features(rgb, depth, self.camera, self.orb_cfg, cfg.sparse)
+                feats = self._features(rgb, depth)
             res = register_sparse_batch([k.features for k in recent], [feats] * len(recent), cfg.sparse, self.generator)
             good = res.success.nonzero().flatten()
             if len(good):
@@ -478,7 +481,7 @@ class GCSlam:
     def _new_keyframe(self, frame, rgb, depth, feats, dense_frame, reference, T_ref, stats, relocalized: bool = False) -> None:
         cfg = self.cfg
         if feats is None:
-            feats = frame_features(rgb, depth, self.camera, self.orb_cfg, cfg.sparse)
+            feats = self._features(rgb, depth)
         kid = len(self.keyframes)
         points, valid = backproject_depth(depth[None].to(torch.float64), self.intrinsics, rays=self.rays)
         points, valid = points[0], valid[0] & (points[0, :, 2] <= cfg.max_depth)
