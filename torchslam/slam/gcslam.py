@@ -368,6 +368,7 @@ class GCSlam:
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
         self._need_unlinked = False
+        self._inline_s = 0.0
 
     def _toc(self, stage: str, t0: float) -> float:
         t1 = time.perf_counter()
@@ -393,6 +394,7 @@ class GCSlam:
         if not self.keyframes or self._need_unlinked:
             self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=None, T_ref=None, stats=None)
             self._need_unlinked = False
+            self._toc("keyframe_insertion", t0 + self._take_inline())
             return
         kf = self.keyframes[-1]
         if cfg.frontend == "sparse":
@@ -405,7 +407,7 @@ class GCSlam:
         if not ok:
             self.counts["tracking_failures"] += 1
             self._relocalize(frame, rgb, depth, feats, dense_frame)
-            self._toc("relocalization", t0)
+            self._toc("relocalization", t0 + self._take_inline())
             return
         self.lost_in_row = 0
         self.inliers.append(n)
@@ -418,9 +420,13 @@ class GCSlam:
                 feats = self._features(rgb, depth)
                 t0 = self._toc("orb_extraction", t0)
             self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=kf.kf, T_ref=T_kf, stats=stats)
-            self._toc("keyframe_insertion", t0)
+            self._toc("keyframe_insertion", t0 + self._take_inline())
             return
         self._record(frame, kf.kf, T_kf)
+
+    def _take_inline(self) -> float:
+        s, self._inline_s = self._inline_s, 0.0
+        return s
 
     def _features(self, rgb: Tensor, depth: Tensor) -> FrameFeatures:
         return frame_features(rgb, depth, self.camera, self.orb_cfg, self.cfg.sparse, rays=self.rays)
@@ -503,7 +509,11 @@ class GCSlam:
         )
         ev = _KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to(dtype=torch.float64), feats, anchor)
+        t_submit = time.perf_counter()
         self._worker.submit(ev)
+        if not self._worker.threaded:
+            # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
+            self._inline_s += time.perf_counter() - t_submit
         self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device))
         self.monitor.scalar("tracking/keyframes", kid + 1, len(self.frame_index))
 
