@@ -62,6 +62,15 @@ def test_loop_closure_is_found_accepted_and_lowers_error():
     assert loops["accepted"] >= 1, loops
     assert with_loops.output.metrics["pairs"]["loop"] >= 1
     assert a_loop.stats["rmse"] <= a_none.stats["rmse"] + 1e-4, (a_loop.stats["rmse"], a_none.stats["rmse"])
+    # Every accepted loop joins two views of the same place: close cameras looking the same way
+    # (MILD proposes places by appearance; distinct places must not end up linked).
+    T = torch.stack([seq[i].T_wc for i in range(len(seq))])
+    closes = with_loops.output.metrics["loop_frames"]
+    assert closes and any(abs(i - j) > 20 for i, j in closes)  # a revisit, not only recent neighbours
+    for i, j in closes:
+        dist = float((T[i, :3, 3] - T[j, :3, 3]).norm())
+        cos = float((T[i, :3, 2] * T[j, :3, 2]).sum())
+        assert dist < 1.0 and cos > 0.7, (i, j, dist, cos)
 
 
 def test_threaded_optimisation_equals_synchronous():

@@ -580,6 +580,9 @@ class GCSlam:
             "threaded": self.cfg.threaded,
             "loops": dict(opt.loops),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
+            # Accepted loop closures as (earlier, later) sequence frame indices of their keyframes.
+            "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
+                            for (i, j), kind in zip(opt.pairs, kinds) if kind == "loop"],
             "tracking": dict(self.counts),
             "correspondences_mean": float(torch.tensor(self.inliers, dtype=torch.float64).mean()) if self.inliers else None,
             "fastgo_ms_mean": sum(fastgo) / len(fastgo) if fastgo else None,
