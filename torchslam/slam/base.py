@@ -92,6 +92,7 @@ def run_sequence(
     sequence: Sequence,
     progress: Callable[[Iterable[Frame]], Iterable[Frame]] | None = None,
     max_frames: int | None = None,
+    on_frame: Callable[[int], None] | None = None,
 ) -> RunResult:
     """Drive ``system`` over ``sequence`` and return its output and timings.
 
@@ -103,6 +104,8 @@ def run_sequence(
         sequence: frames to process, in order.
         progress: optional wrapper around the frame iterator (e.g. a progress bar).
         max_frames: stop after this many frames.
+        on_frame: called with the number of frames processed so far after each frame, outside
+            the compute timer (monitoring: e.g. the ATE so far every n frames).
     """
     frames: Iterable[Frame] = iter(sequence)
     if progress is not None:
@@ -118,6 +121,8 @@ def run_sequence(
             system.track(frame)
             compute_s += time.perf_counter() - t0
             processed += 1
+            if on_frame is not None:
+                on_frame(processed)
     except KeyboardInterrupt:
         interrupted = True
         logger.warning("interrupted after %d frames; finishing with what was computed", processed)

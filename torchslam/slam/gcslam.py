@@ -517,6 +517,30 @@ class GCSlam:
         self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device))
         self.monitor.scalar("tracking/keyframes", kid + 1, len(self.frame_index))
 
+    # ------------------------------------------------------------------ monitoring
+    def estimate_so_far(self) -> Trajectory | None:
+        """The frames tracked so far, posed from the keyframes the optimiser has processed.
+
+        With the background thread, frames of keyframes still queued are left out. Poses are at
+        the depth instants (not re-sampled to colour stamps until ``finish``).
+        """
+        T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
+        keep = [k for k, kf in enumerate(self.frame_kf) if kf < len(T_wk)]
+        if not keep:
+            return None
+        T = torch.stack([T_wk[self.frame_kf[k]] @ self.frame_T_kf[k].cpu() for k in keep])
+        return Trajectory(torch.tensor([self.frame_geom_time[k] for k in keep], dtype=torch.float64), T)
+
+    def progress_counters(self) -> dict[str, float]:
+        """Keyframes, loops and lost frames so far, for TensorBoard."""
+        loops = dict(self.optimizer.loops)
+        return {
+            "keyframes": float(len(self.keyframes)),
+            "loops_accepted": float(loops["accepted"]),
+            "loops_rejected": float(loops["rejected"]),
+            "lost_frames": float(self.counts["lost_frames"]),
+        }
+
     # ------------------------------------------------------------------ output
     def finish(self) -> SystemOutput:
         if self._worker is None:

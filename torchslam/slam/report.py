@@ -33,7 +33,7 @@ from ..data.trajectory import Trajectory, read_tum_trajectory
 from ..errors import DataFormatError, TorchSlamError
 from .batch import BatchSource, format_table, summary_row, summary_totals
 
-__all__ = ["find_groundtruth", "load_batch", "write_report"]
+__all__ = ["find_groundtruth", "load_batch", "trajectory_image", "write_report"]
 
 logger = logging.getLogger(__name__)
 
@@ -145,8 +145,8 @@ def _bar_chart(path: Path, names: list[str], values: list[float], xlabel: str, t
     fig.savefig(path)
 
 
-def _trajectory_plot(path: Path, name: str, estimate: Trajectory, groundtruth: Trajectory | None) -> str:
-    """Plot the top view of ``estimate`` (aligned onto ``groundtruth`` where possible); return a caption."""
+def _trajectory_figure(name: str, estimate: Trajectory, groundtruth: Trajectory | None):
+    """Top view of ``estimate`` (aligned onto ``groundtruth`` where possible): ``(figure, caption)``."""
     from ..eval import ate
 
     p_est = estimate.positions
@@ -181,8 +181,28 @@ def _trajectory_plot(path: Path, name: str, estimate: Trajectory, groundtruth: T
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    return fig, caption
+
+
+def _trajectory_plot(path: Path, name: str, estimate: Trajectory, groundtruth: Trajectory | None) -> str:
+    """Save the top view of ``estimate`` to ``path``; return its caption."""
+    fig, caption = _trajectory_figure(name, estimate, groundtruth)
     fig.savefig(path)
     return caption
+
+
+def trajectory_image(name: str, estimate: Trajectory, groundtruth: Trajectory | None) -> torch.Tensor:
+    """The top view of ``estimate`` against ``groundtruth`` as a (3, H, W) float image in [0, 1].
+
+    The same plot as the report's (aligned by SE(3) onto the ground truth where there is one),
+    for TensorBoard.
+    """
+    import numpy as np
+
+    fig, _ = _trajectory_figure(name, estimate, groundtruth)
+    fig.canvas.draw()
+    rgba = np.asarray(fig.canvas.buffer_rgba())
+    return torch.from_numpy(rgba[..., :3].copy()).permute(2, 0, 1).float() / 255.0
 
 
 def write_report(batch_dir: str | os.PathLike) -> Path:

@@ -1,0 +1,76 @@
+"""Live TensorBoard figures of a run: ATE so far, per-stage milliseconds, keyframes, loops.
+
+``progress_callback`` builds the ``on_frame`` hook that :func:`~torchslam.slam.run_sequence`
+calls after each frame; every ``every`` frames it asks the system for its current estimate
+(``estimate_so_far()``, where the system has one) and logs the ATE of that estimate against the
+ground truth, the running per-frame milliseconds of each stage and the system's counters.
+``log_final`` adds the top view of the final trajectory against the ground truth as an image.
+The work happens outside the compute timer, so frame rates are unaffected apart from wall time.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable
+
+import torch
+
+from ..data.frame import Sequence
+from ..data.trajectory import Trajectory
+from ..errors import TorchSlamError
+from .base import SystemOutput
+from .monitor import Monitor
+
+__all__ = ["progress_callback", "log_final"]
+
+logger = logging.getLogger(__name__)
+
+
+def _ate_so_far(system: Any, groundtruth: Trajectory) -> float | None:
+    from ..eval import ate
+
+    estimate = system.estimate_so_far()
+    if estimate is None or len(estimate) < 3:
+        return None
+    try:
+        return float(ate(estimate, groundtruth, align="se3").stats["rmse"])
+    except TorchSlamError:  # too few matched stamps so far
+        return None
+
+
+def progress_callback(system: Any, sequence: Sequence, monitor: Monitor, every: int = 30) -> Callable[[int], None]:
+    """The ``on_frame`` hook that logs the run's progress every ``every`` frames.
+
+    Logged (where available): ``eval/ate_so_far_m`` (systems with ``estimate_so_far()`` on
+    sequences with ground truth), ``timing/<stage>_ms`` (running mean per processed frame of the
+    system's ``stage_ms``), ``progress/<counter>`` (the system's ``progress_counters()``).
+    """
+    groundtruth = sequence.groundtruth
+
+    def on_frame(n: int) -> None:
+        if every <= 0 or n % every:
+            return
+        if groundtruth is not None and hasattr(system, "estimate_so_far"):
+            value = _ate_so_far(system, groundtruth)
+            if value is not None:
+                monitor.scalar("eval/ate_so_far_m", value, n)
+        stage_ms = getattr(system, "stage_ms", None)
+        if isinstance(stage_ms, dict):
+            monitor.scalars({f"{k}_ms": v / n for k, v in dict(stage_ms).items()}, n, prefix="timing/")
+        if hasattr(system, "progress_counters"):
+            monitor.scalars(system.progress_counters(), n, prefix="progress/")
+
+    return on_frame
+
+
+def log_final(monitor: Monitor, output: SystemOutput, sequence: Sequence, name: str, step: int) -> None:
+    """Log the top view of the final trajectory against the ground truth as an image."""
+    if len(output.T_wc) < 2:
+        return
+    from .report import trajectory_image
+
+    estimate = Trajectory(output.timestamps.to(torch.float64), output.T_wc.to(torch.float64))
+    try:
+        monitor.image("trajectory/top_view", trajectory_image(name, estimate, sequence.groundtruth), step)
+    except (TorchSlamError, ValueError) as exc:  # a plot must never cost the run
+        logger.warning("trajectory image not logged: %s", exc)
