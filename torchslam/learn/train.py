@@ -179,7 +179,7 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
     def floats(p: LearnableParams) -> dict[str, float]:
         return {k: float(v.detach()) if isinstance(v, torch.Tensor) else float(v) for k, v in values(p).items()}
 
-    default = floats(learnable(base, cfg.names))
+    default = {k: float(getattr(base.kcc, k)) for k in ("sigma", "lam", "temperature")}
     metrics: dict[str, Any] = {"train_pairs": len(train), "val_pairs": len(val), "default": default}
     metrics["val_default"] = evaluate_kcc(val, kcc_cfg, **default)
     if tum is not None:
