@@ -31,6 +31,8 @@ def _add_run(sub) -> None:
     p.add_argument("--config", default=None, help="YAML file overriding the system's defaults (see configs/)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set sigma=0.3 or --set data.stride=2 (repeatable)")
+    p.add_argument("--params", default=None, metavar="CKPT",
+                   help="checkpoint of learned config values (scripts/train.py), applied after --config and before --set")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
@@ -52,6 +54,7 @@ def _cmd_run(args) -> int:
     options = RunOptions(
         system=args.system, data=args.data, out=out, device=args.device,
         tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
+        params=Path(args.params) if args.params else None,
     )
     progress = None
     if not args.no_progress:

@@ -51,7 +51,11 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class RunOptions:
-    """Everything about a run that is not the system's own config."""
+    """Everything about a run that is not the system's own config.
+
+    ``params`` is a checkpoint of learned config values (``torchslam.learn.save_checkpoint``)
+    applied on top of the config file and below ``--set`` overrides.
+    """
 
     system: str
     data: str
@@ -59,13 +63,23 @@ class RunOptions:
     device: str = "cpu"
     tensorboard: bool = True
     max_frames: int | None = None
+    params: Path | None = None
 
 
-def resolve_config(system: str, config_path: str | os.PathLike | None, overrides: Iterable[str]) -> tuple[Any, DataConfig, dict[str, Any]]:
-    """Merge the system's defaults, its YAML file and ``--set`` overrides.
+def resolve_config(
+    system: str,
+    config_path: str | os.PathLike | None,
+    overrides: Iterable[str],
+    params: str | os.PathLike | None = None,
+) -> tuple[Any, DataConfig, dict[str, Any]]:
+    """Merge the system's defaults, its YAML file, a learned-parameter checkpoint and ``--set`` overrides.
 
     The YAML file holds the system's keys at the top level and an optional ``data:`` section;
-    ``--set data.stride=2`` and ``--set sigma=0.3`` address the two parts.
+    ``--set data.stride=2`` and ``--set sigma=0.3`` address the two parts. Sections merge key
+    by key, so ``--set kcc.sigma=0.3`` keeps the file's other ``kcc`` values. ``params`` (a
+    ``torchslam.learn`` checkpoint of config values, e.g. ``kcc.sigma``) is applied after the
+    file and before ``--set``; a checkpoint of another system or with unknown keys raises a
+    ConfigError naming the file and the key.
 
     Returns:
         (system config, data config, the resolved config as plain data for ``config.yaml``).
@@ -85,6 +99,11 @@ def resolve_config(system: str, config_path: str | os.PathLike | None, overrides
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
         layers.append((str(path), dict(loaded or {})))
+    if params is not None:
+        from ..learn.params import checkpoint_values  # lazy: torch.load and the learn package
+
+        values = checkpoint_values(params, spec.config_cls, system)
+        layers.append((str(params), _nest(values)))
     layers.append(("--set", parse_overrides(list(overrides))))
     system_data: dict[str, Any] = {}
     data_data: dict[str, Any] = {}
@@ -93,14 +112,26 @@ def resolve_config(system: str, config_path: str | os.PathLike | None, overrides
         layer.pop("system", None)
         d = layer.pop("data", None) or {}
         # Validate each layer on its own so an error names the file or --set it came from.
-        config_from_dict(spec.config_cls, {**system_data, **layer}, source=source)
+        config_from_dict(spec.config_cls, _merge(system_data, layer), source=source)
         config_from_dict(DataConfig, _merge(data_data, d), source=f"{source} (data)")
-        system_data.update(layer)
+        system_data = _merge(system_data, layer)
         data_data = _merge(data_data, d)
     system_cfg = config_from_dict(spec.config_cls, system_data)
     data_cfg = config_from_dict(DataConfig, data_data)
     resolved = {"system": system, **config_to_dict(system_cfg), "data": config_to_dict(data_cfg)}
     return system_cfg, data_cfg, resolved
+
+
+def _nest(values: dict[str, Any]) -> dict[str, Any]:
+    """``{"kcc.sigma": 0.3}`` as ``{"kcc": {"sigma": 0.3}}``."""
+    out: dict[str, Any] = {}
+    for key, v in values.items():
+        *sections, last = key.split(".")
+        node = out
+        for part in sections:
+            node = node.setdefault(part, {})
+        node[last] = v
+    return out
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
@@ -135,7 +166,7 @@ def run(
         The metrics written to ``metrics.json``.
     """
     spec = get_system(options.system)
-    system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
+    system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     sequence = load_sequence(options.data, data_cfg)
     out = Path(options.out)
     monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
@@ -143,7 +174,10 @@ def run(
         system = spec.build(system_cfg, device=options.device, monitor=monitor)
         result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames)
         resolved["device"] = options.device
-        metrics = write_run(out, options.system, result, sequence, config=resolved, extra={"device": options.device, "data": options.data})
+        extra = {"device": options.device, "data": options.data}
+        if options.params is not None:
+            extra["params"] = str(options.params)
+        metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)
         monitor.hparams(
             {k: v for k, v in resolved.items() if not isinstance(v, dict)},
             {k: v for k, v in metrics.items() if k in ("ate_rmse_m", "fps_end_to_end", "keyframes") and v is not None},
