@@ -38,11 +38,13 @@ __all__ = ["CPU_BATCH_PIXELS", "default_max_batch", "run_lockstep"]
 logger = logging.getLogger(__name__)
 
 # Orthographic pixels per batched call on the CPU: ``max_batch`` defaults to this over the
-# orthographic image size (at least 1). With one thread on the 2-core development machine the
-# tracking step's time per frame grows with B once a call's images leave the caches: at the
-# default 360 x 480 it is lowest at B = 1 (12 ms/frame; 14-15 ms at B = 4-8), at 180 x 240 and
-# 90 x 120 it falls up to B = 8 (by 10 % and 50 %). See ``scripts/bench_batch.py``. On other
-# devices the whole group is one batch.
+# orthographic image size (at least 1). On the CPU a batched call saves per-operation overhead
+# but its images leave the caches as B grows. Measured with ``scripts/bench_batch.py`` (one
+# thread, 2-core AMD EPYC shared with other jobs): at the default 360 x 480 one (B, ...) batch
+# per step gave 0.94x to 0.78x the frames/s of running the sequences one after another for
+# B = 2 to 16, and at 180 x 240 1.04x to 1.09x up to B = 32 but 0.85x at B = 64; this budget
+# (one sequence per call at 360 x 480, six at 180 x 240) gave 0.99x to 1.09x. On other devices
+# the whole group is one batch.
 CPU_BATCH_PIXELS = 2**18
 
 
