@@ -61,3 +61,17 @@ def test_progress_without_groundtruth_or_estimate_logs_only_what_exists():
     hook(2)
     assert "eval/ate_so_far_m" not in mon.scalars_
     assert mon.scalars_["timing/work_ms"] == [(1, 5.0), (2, 2.5)]
+
+
+def test_estimate_so_far_after_the_last_frame_equals_the_final_trajectory():
+    # Without a final re-optimisation and with depth instants equal to the frame stamps, the
+    # live estimate after the last frame is the output.
+    from torchslam.slam.nislam import NISlam
+
+    seq = generate_sequence(SyntheticConfig(frames=24, width=320, height=240, trajectory="orbit", seed=6))
+    for system in (NISlam(), GCSlam(GCSlamConfig(threaded=False, final_iterations=0))):
+        live = []
+        result = run_sequence(system, seq, on_frame=lambda n, s=system: live.append(s.estimate_so_far()) if n == len(seq) else None)
+        out = result.output
+        torch.testing.assert_close(live[0].T_wc, out.T_wc, rtol=0, atol=1e-12)
+        torch.testing.assert_close(live[0].timestamps, out.timestamps, rtol=0, atol=0)

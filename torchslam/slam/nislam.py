@@ -692,6 +692,27 @@ class NISlam:
         self.monitor.scalar("map/loops", self.loops["accepted"], len(self.frame_index))
 
     # ------------------------------------------------------------------ output
+    def estimate_so_far(self) -> Trajectory | None:
+        """Every frame tracked so far in the current keyframe poses, at the depth instants."""
+        if not self.frame_index:
+            return None
+        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        kf_of = torch.tensor(self.frame_kf, dtype=torch.int64)
+        T = T_wk[kf_of] @ torch.stack(self.frame_T_kf)
+        return Trajectory(torch.tensor(self.frame_geom_time, dtype=torch.float64), T)
+
+    def progress_counters(self) -> dict[str, float]:
+        """Keyframes, loops, fused frames and the last PSR, for TensorBoard."""
+        out = {
+            "keyframes": float(len(self.keyframes)),
+            "loops_accepted": float(self.loops["accepted"]),
+            "loops_rejected": float(self.loops["rejected_by_odometry"]),
+            "fused_frames": float(self.fused),
+        }
+        if self.psr and math.isfinite(self.psr[-1]):
+            out["psr"] = float(self.psr[-1])
+        return out
+
     def finish(self) -> SystemOutput:
         from .base import empty_output
 

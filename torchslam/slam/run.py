@@ -18,6 +18,7 @@ from ..data.tum import TUMSequence
 from ..errors import ConfigError
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
+from .progress import log_final, progress_callback
 from .outputs import write_run
 from .registry import get_system
 
@@ -54,7 +55,8 @@ class RunOptions:
     """Everything about a run that is not the system's own config.
 
     ``params`` is a checkpoint of learned config values (``torchslam.learn.save_checkpoint``)
-    applied on top of the config file and below ``--set`` overrides.
+    applied on top of the config file and below ``--set`` overrides. With ``tensorboard``, the
+    ATE so far, running stage times and counters are logged every ``monitor_every`` frames.
     """
 
     system: str
@@ -64,6 +66,7 @@ class RunOptions:
     tensorboard: bool = True
     max_frames: int | None = None
     params: Path | None = None
+    monitor_every: int = 30
 
 
 def resolve_config(
@@ -172,7 +175,10 @@ def run(
     monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
     try:
         system = spec.build(system_cfg, device=options.device, monitor=monitor)
-        result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames)
+        on_frame = progress_callback(system, sequence, monitor, every=options.monitor_every) if options.tensorboard else None
+        result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames, on_frame=on_frame)
+        if options.tensorboard:
+            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
         resolved["device"] = options.device
         extra = {"device": options.device, "data": options.data}
         if options.params is not None:
