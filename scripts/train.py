@@ -13,7 +13,7 @@ Writes into ``--out DIR``: TensorBoard event files (loss, parameters, validation
 ``params.pt`` (``torchslam.learn.save_checkpoint``) and ``metrics.json``; prints the comparison
 of learned against default values. Usage::
 
-    python scripts/train.py --what kcc --out logs/train-kcc [--steps 60] [--tum ../shared/data/tum_fr1_xyz]
+    python scripts/train.py --what kcc --out logs/train-kcc [--steps 60] [--tum ../shared/data/tum_fr1_xyz --tum-frames 300]
     python scripts/train.py --what pairnet --out logs/train-pairnet
 """
 
@@ -57,6 +57,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--val-seeds", type=_seeds, default=None, help="held-out seeds, e.g. 100-103")
     p.add_argument("--batch-size", type=int, default=None, help="pairs (kcc) or graphs (pairnet) per step; 0 = all")
     p.add_argument("--tum", default=None, help="kcc: also validate on frame pairs of this TUM-layout folder")
+    p.add_argument("--tum-frames", type=int, default=None, help="kcc: frames of --tum used from its start (default 60)")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     p.add_argument("-v", "--verbose", action="store_true", help="log progress")
     return p
@@ -78,8 +79,8 @@ def _line(name: str, a: dict, b: dict, keys: tuple[str, ...]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if args.tum and args.what != "kcc":
-        parser.error("--tum applies to --what kcc only")
+    if (args.tum or args.tum_frames) and args.what != "kcc":
+        parser.error("--tum and --tum-frames apply to --what kcc only")
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -87,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     try:
         if args.what == "kcc":
-            cfg = KCCTrainConfig(**_overrides(args), tum=args.tum)
+            tum = {"tum": args.tum} if args.tum_frames is None else {"tum": args.tum, "tum_frames": args.tum_frames}
+            cfg = KCCTrainConfig(**_overrides(args), **tum)
             result = train_kcc(cfg, monitor=monitor)
             extra = {"what": "kcc", "system": "nislam", "train_config": config_to_dict(cfg)}
         else:

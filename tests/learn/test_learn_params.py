@@ -38,7 +38,7 @@ def test_learnable_holds_config_values_and_applies_them_back():
         assert p.value(key).dtype == torch.float64
         assert float(p.value(key).detach()) == pytest.approx(expected, rel=1e-12)
     # positive values live in log space: the raw parameter is log(value)
-    assert float(p.raw["kcc__sigma"]) == pytest.approx(math.log(0.2), rel=1e-12)
+    assert float(p.raw["kcc__sigma"].detach()) == pytest.approx(math.log(0.2), rel=1e-12)
     with torch.no_grad():
         p.raw["kcc__sigma"].fill_(math.log(0.35))
         p.raw["kcc__lam"].fill_(math.log(0.02))
@@ -64,7 +64,7 @@ def test_gradients_reach_the_log_parameters():
 def test_non_positive_values_are_held_linearly():
     p = learnable(_Outer(), ["inner.offset", "inner.scale"])
     assert p.log_space == (False, True)
-    assert float(p.raw["inner__offset"]) == -0.5
+    assert float(p.raw["inner__offset"].detach()) == -0.5
     assert float(p.value("inner.scale").detach()) == pytest.approx(2.0)
     with torch.no_grad():
         p.raw["inner__offset"].fill_(-2.0)
