@@ -195,6 +195,10 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
             monitor.scalars(ev, step, prefix="val/")
             monitor.scalars(v, step, prefix="params/")
             history.append({"step": step, **{f"val/{k}": x for k, x in ev.items()}, **v})
+            if tum is not None:
+                ev_tum = evaluate_kcc(tum, kcc_cfg, **v)
+                monitor.scalars(ev_tum, step, prefix="tum/")
+                history[-1].update({f"tum/{k}": x for k, x in ev_tum.items()})
         if step == cfg.steps:
             break
         batch = train
@@ -214,7 +218,6 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
     metrics["val_learned"] = evaluate_kcc(val, kcc_cfg, **learned)
     if tum is not None:
         metrics["tum_learned"] = evaluate_kcc(tum, kcc_cfg, **learned)
-        monitor.scalars(metrics["tum_learned"], cfg.steps, prefix="tum/")
     with torch.no_grad():
         metrics["train_loss_default"] = float(kcc_shift_loss(train, **default, cfg=kcc_cfg).loss)
         metrics["train_loss_learned"] = float(kcc_shift_loss(train, **learned, cfg=kcc_cfg).loss)
