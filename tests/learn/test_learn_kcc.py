@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchslam.errors import ConfigError, ShapeError
-from torchslam.geometry import se3_exp, se3_from_Rt
+from torchslam.geometry import se3_exp
 from torchslam.kcc import KCCConfig, Subpixel, kcc_features
 from torchslam.learn import (
     KCCPairs,

@@ -54,7 +54,7 @@ def test_params_sit_between_config_file_and_set(tmp_path):
     ckpt = _checkpoint(tmp_path / "params.pt")
     cfg_file = tmp_path / "c.yaml"
     cfg_file.write_text("kcc:\n  sigma: 0.9\n  T_K: 40.0\n")
-    system, _, resolved = resolve_config("nislam", cfg_file, [], params=ckpt)
+    system, _, _ = resolve_config("nislam", cfg_file, [], params=ckpt)
     assert system.kcc.sigma == pytest.approx(0.37) and system.kcc.T_K == 40.0  # file's other kcc keys kept
     system, _, _ = resolve_config("nislam", cfg_file, ["kcc.sigma=0.5"], params=ckpt)
     assert system.kcc.sigma == 0.5 and system.kcc.lam == pytest.approx(0.023) and system.kcc.T_K == 40.0

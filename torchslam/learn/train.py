@@ -26,7 +26,6 @@ from .pairnet import (
     false_loop_problem,
     pair_features,
     pose_error,
-    rms_translation_error,
     weighted_optimize,
 )
 from .params import LearnableParams, learnable
