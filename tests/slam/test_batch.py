@@ -272,7 +272,7 @@ def test_an_interrupt_between_groups_writes_the_summary(tmp_path):
     assert _summary(tmp_path / "b")["rows"] == result.rows
 
 
-def test_engine_dispatch_uses_lockstep_for_nislam_groups_where_available(tmp_path, monkeypatch):
+def test_engine_dispatch_uses_lockstep_for_groups_where_available(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "torchslam.slam.lockstep", None)  # not part of this installation
     assert select_engine("nislam", 4)[0] == "sequential"
     groups = []
@@ -283,7 +283,8 @@ def test_engine_dispatch_uses_lockstep_for_nislam_groups_where_available(tmp_pat
 
     monkeypatch.setitem(sys.modules, "torchslam.slam.lockstep", types.SimpleNamespace(run_lockstep=run_lockstep))
     assert select_engine("nislam", 1)[0] == "sequential"
-    assert select_engine("gcslam", 4)[0] == "sequential"
+    assert select_engine("gcslam", 4)[0] == "lockstep"
+    assert select_engine("gcslam", 1)[0] == "sequential"
     out = tmp_path / "b"
     assert _batch(out, "synthetic:3", extra=["--batch-size", "2", "--max-frames", "6"]) == 0
     doc = _summary(out)

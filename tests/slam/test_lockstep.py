@@ -154,3 +154,31 @@ def test_max_frames_and_default_batch():
     assert default_max_batch(CFG, "cpu", 64) == 2**18 // (90 * 120)
     assert default_max_batch(NISlamConfig(), "cpu", 64) == 1
     assert default_max_batch(CFG, "cuda", 64) == 64
+
+
+def test_gcslam_lockstep_equals_per_sequence_runs_with_joint_fastgo(monkeypatch):
+    """GC-SLAM in lockstep: one FastGO call for all sequences' new keyframes, same results."""
+    import torchslam.slam.gcslam as gc
+    from torchslam.slam.gcslam import GCSlam, GCSlamConfig
+
+    seqs = [
+        generate_sequence(SyntheticConfig(frames=n, width=320, height=240, trajectory=kind, seed=seed))
+        for n, kind, seed in ((16, "orbit", 1), (10, "translate", 2), (22, "loop", 3))
+    ]
+    cfg = GCSlamConfig(threaded=False)
+    alone = [run_sequence(GCSlam(cfg), s).output for s in seqs]
+    batches = []
+    real = gc.optimize_batch
+
+    def spy(problems, config=None):
+        batches.append(len(problems))
+        return real(problems, config)
+
+    monkeypatch.setattr(gc, "optimize_batch", spy)
+    results = run_lockstep(cfg, seqs)
+    assert max(batches) >= 2  # keyframes of several sequences were optimised in one call
+    for res, ref in zip(results, alone):
+        assert not isinstance(res, BaseException), res
+        assert torch.equal(res.output.keyframe_indices, ref.keyframe_indices)
+        torch.testing.assert_close(res.output.T_wc, ref.T_wc, rtol=0, atol=1e-5)
+        assert res.frames_processed == len(ref.T_wc)

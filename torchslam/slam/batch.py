@@ -417,12 +417,15 @@ def _lockstep_runner() -> Callable[..., list] | None:
 
 
 def select_engine(system: str, batch_size: int) -> tuple[str, GroupRunner]:
-    """Choose how groups run: ``("lockstep", ...)`` for NI-SLAM with B > 1 where available, else sequential.
+    """Choose how groups run: ``("lockstep", ...)`` with B > 1 where available, else sequential.
+
+    NI-SLAM in lockstep batches its per-frame tensor work; GC-SLAM in lockstep solves the pose
+    graphs of the group's sequences in one FastGO call per step.
 
     Returns:
         (engine name, group runner with :func:`run_group`'s signature).
     """
-    if system == "nislam" and batch_size > 1:
+    if system in ("nislam", "gcslam") and batch_size > 1:
         lockstep = _lockstep_runner()
         if lockstep is not None:
 

@@ -43,8 +43,8 @@ from torch import Tensor
 
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
-from ..errors import ConfigError, TorchSlamError
-from ..fastgo import FastGOConfig, PairStats, accept_loop_closures, optimize
+from ..errors import ConfigError, ShapeError, TorchSlamError
+from ..fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closures, optimize, optimize_batch
 from ..features import ORBConfig
 from ..geometry import PinholeCamera, backproject_depth, project_points, se3_inverse, undistorted_rays
 from ..loop import MILDConfig, MILDDatabase
@@ -52,10 +52,11 @@ from ..registration.dense import DenseConfig, prepare_dense_frame, register_dens
 from ..registration.sparse import FrameFeatures, SparseConfig, frame_features, register_sparse, register_sparse_batch
 from .base import SystemOutput, empty_output
 from .monitor import Monitor
+from .nislam import StepReport
 from .outputs import voxel_downsample
 from .registry import SystemSpec
 
-__all__ = ["GCSlam", "GCSlamConfig", "SPEC"]
+__all__ = ["GCSlam", "GCSlamConfig", "SPEC", "insert_keyframes", "track_frames"]
 
 logger = logging.getLogger(__name__)
 
@@ -191,6 +192,13 @@ class _Optimizer:
         return T, torch.tensor(self.pairs, dtype=torch.int64), PairStats.cat(self.stats)
 
     def insert(self, ev: _KeyframeEvent) -> None:
+        """Take one new keyframe: pose, odometry pair, MILD, FastGO, loop closures."""
+        (error,) = insert_keyframes([self], [ev])
+        if error is not None:
+            raise error
+
+    def _begin(self, ev: _KeyframeEvent) -> list[int]:
+        """Add the keyframe and its odometry pair; query and update MILD; return loop candidates."""
         cfg = self.cfg
         if ev.kf != len(self.T_wk):
             raise TorchSlamError(f"keyframe {ev.kf} inserted out of order (expected {len(self.T_wk)})")
@@ -213,17 +221,15 @@ class _Optimizer:
             ids, _ = self.mild.query(ev.features.descriptors)
             candidates = [int(c) for c in ids if int(c) != ev.reference]
         self.mild.add(ev.kf, ev.features.descriptors)
-        t0 = self._add_ms("loop_detection", t0)
-        if self.pairs:
-            T, pairs, stats = self._problem()
-            res = optimize(T, pairs, stats, fixed=0, config=self._fastgo_config(cfg.fastgo_iterations))
-            self.T_wk = list(res.T_wc.unbind(0))
-            ms = 1000.0 * (time.perf_counter() - t0)
-            self.fastgo_ms.append(ms)
-            self.monitor.scalar("optimization/fastgo_ms", ms, ev.kf)
-            t0 = self._add_ms("fastgo", t0)
-        if candidates:
-            self._close_loops(ev.kf, candidates)
+        self._add_ms("loop_detection", t0)
+        return candidates
+
+    def _optimized(self, res, kf: int, ms: float) -> None:
+        """Take the result of the per-keyframe FastGO run (``ms``: its share of the time)."""
+        self.T_wk = list(res.T_wc.unbind(0))
+        self.fastgo_ms.append(ms)
+        self.stage_ms["fastgo"] = self.stage_ms.get("fastgo", 0.0) + ms
+        self.monitor.scalar("optimization/fastgo_ms", ms, kf)
 
     def _close_loops(self, kf: int, candidates: list[int]) -> None:
         cfg = self.cfg
@@ -274,13 +280,67 @@ class _Optimizer:
             self._add_ms("fastgo_final", t0)
 
 
-class _Worker:
-    """Runs an :class:`_Optimizer` in a background thread, or inline."""
+def insert_keyframes(optimizers: list[_Optimizer], events: list[_KeyframeEvent]) -> list[Exception | None]:
+    """Insert one new keyframe into each of several optimisers (one per sequence) at once.
 
-    def __init__(self, optimizer: _Optimizer, threaded: bool) -> None:
+    Each optimiser adds its keyframe and queries MILD; then ONE FastGO call (``optimize_batch``)
+    runs ``fastgo_iterations`` over all their pose graphs together (each with its own damping
+    and convergence); finally each closes its loops. With one optimiser this is exactly the
+    per-keyframe step of a single sequence; with several each gets the result it gets alone,
+    since the problems of a batch do not interact.
+
+    Returns:
+        Per optimiser the exception that stopped its step (its state is then undefined), or None.
+        A joint FastGO call that raises is repeated one problem at a time to place the failure.
+    """
+    errors: list[Exception | None] = [None] * len(optimizers)
+    candidates: list[list[int]] = [[] for _ in optimizers]
+    for k, (o, ev) in enumerate(zip(optimizers, events)):
+        try:
+            candidates[k] = o._begin(ev)
+        except Exception as exc:  # noqa: BLE001 - reported in the optimiser's place
+            errors[k] = exc
+    idx = [k for k, o in enumerate(optimizers) if errors[k] is None and o.pairs]
+    groups = [idx] if idx else []
+    while groups:
+        group = groups.pop(0)
+        t0 = time.perf_counter()
+        try:
+            problems = [FastGOProblem(*optimizers[k]._problem(), 0) for k in group]
+            o0 = optimizers[group[0]]
+            res = optimize_batch(problems, o0._fastgo_config(o0.cfg.fastgo_iterations))
+        except Exception as exc:  # noqa: BLE001
+            if len(group) == 1:
+                errors[group[0]] = exc
+            else:
+                groups.extend([k] for k in group)
+            continue
+        share = 1000.0 * (time.perf_counter() - t0) / len(group)
+        for j, k in enumerate(group):
+            optimizers[k]._optimized(res.problem(j), events[k].kf, share)
+    for k, (o, ev) in enumerate(zip(optimizers, events)):
+        if errors[k] is None and candidates[k]:
+            try:
+                o._close_loops(ev.kf, candidates[k])
+            except Exception as exc:  # noqa: BLE001
+                errors[k] = exc
+    return errors
+
+
+class _Worker:
+    """Runs an :class:`_Optimizer` in a background thread, inline, or deferred.
+
+    Deferred (lockstep runs of several sequences): new keyframes wait in ``pending`` until the
+    driver inserts those of all sequences together (:func:`track_frames`).
+    """
+
+    def __init__(self, optimizer: _Optimizer, threaded: bool, deferred: bool = False) -> None:
         self.optimizer = optimizer
-        self.threaded = threaded
+        self.threaded = threaded and not deferred
+        self.deferred = deferred
+        self.pending: list[_KeyframeEvent] = []
         self.error: BaseException | None = None
+        threaded = self.threaded
         if threaded:
             self.queue: queue.Queue = queue.Queue()
             self.thread = threading.Thread(target=self._loop, name="torchslam-gcslam-optimizer", daemon=True)
@@ -303,10 +363,14 @@ class _Worker:
             raise TorchSlamError(f"GC-SLAM optimisation thread failed: {self.error}") from self.error
         if self.threaded:
             self.queue.put(ev)
+        elif self.deferred:
+            self.pending.append(ev)
         else:
             self.optimizer.insert(ev)
 
     def join(self) -> None:
+        while self.pending:
+            self.optimizer.insert(self.pending.pop(0))
         if self.threaded:
             self.queue.put(None)
             self.thread.join()
@@ -338,10 +402,22 @@ class GCSlam:
 
     name = "gcslam"
 
-    def __init__(self, cfg: GCSlamConfig | None = None, device: str | torch.device = "cpu", monitor: Monitor | None = None):
+    def __init__(
+        self, cfg: GCSlamConfig | None = None, device: str | torch.device = "cpu", monitor: Monitor | None = None,
+        deferred: bool = False,
+    ):
+        """
+        Args:
+            cfg: settings.
+            device: where the front-end's tensors live.
+            monitor: TensorBoard (or no-op) monitor.
+            deferred: leave new keyframes for :func:`track_frames` to optimise together with
+                those of other sequences (lockstep runs); overrides ``cfg.threaded``.
+        """
         self.cfg = cfg or GCSlamConfig()
         self.device = torch.device(device)
         self.monitor = monitor or Monitor()
+        self.deferred = deferred
         self._worker: _Worker | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -353,7 +429,7 @@ class GCSlam:
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
         self.orb_cfg = cfg.orb()
         self.optimizer = _Optimizer(cfg, self.monitor)
-        self._worker = _Worker(self.optimizer, cfg.threaded)
+        self._worker = _Worker(self.optimizer, cfg.threaded, deferred=self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
         self.frame_index: list[int] = []
         self.frame_time: list[float] = []
@@ -613,6 +689,52 @@ class GCSlam:
             "fastgo_ms_last": fastgo[-1] if fastgo else None,
             "fastgo_ms_max": max(fastgo) if fastgo else None,
         }
+
+
+def track_frames(systems: list[GCSlam], frames: list[Frame], max_batch: int | None = None) -> StepReport:
+    """Advance GC-SLAM systems (one per sequence, started with ``deferred=True``) by one frame each.
+
+    Each system tracks its frame on its own (ORB, registration, keyframe decision); then the new
+    keyframes of all systems are inserted together (:func:`insert_keyframes`): one FastGO call
+    optimises every sequence's pose graph at once. Each system's result equals its result alone.
+
+    Args:
+        systems: started GC-SLAM systems in deferred mode.
+        frames: the next frame of each system's sequence.
+        max_batch: unused (every pose graph of the step shares one FastGO call); accepted so the
+            lockstep driver treats both systems alike.
+
+    Returns:
+        StepReport: per system its error (its state is then undefined) and compute seconds (its
+        tracking plus an equal share of the joint optimisation).
+    """
+    if len(frames) != len(systems):
+        raise ShapeError(f"frames: expected one frame per system ({len(systems)}), got {len(frames)}")
+    errors: list[Exception | None] = [None] * len(systems)
+    compute = [0.0] * len(systems)
+    for k, (system, frame) in enumerate(zip(systems, frames)):
+        if not system.deferred:
+            raise ConfigError(f"systems[{k}]: expected a GCSlam built with deferred=True")
+        t0 = time.perf_counter()
+        try:
+            system.track(frame)
+        except Exception as exc:  # noqa: BLE001 - reported in the system's place
+            errors[k] = exc
+        compute[k] += time.perf_counter() - t0
+    ready = [k for k, s in enumerate(systems) if errors[k] is None and s._worker.pending]
+    t0 = time.perf_counter()
+    while ready:
+        # Normally one keyframe per system and step; relocalisation never queues more than one.
+        opts = [systems[k].optimizer for k in ready]
+        evs = [systems[k]._worker.pending.pop(0) for k in ready]
+        for k, err in zip(ready, insert_keyframes(opts, evs)):
+            errors[k] = err
+        ready = [k for k in ready if errors[k] is None and systems[k]._worker.pending]
+    shared = time.perf_counter() - t0
+    active = [k for k in range(len(systems)) if errors[k] is None]
+    for k in active:
+        compute[k] += shared / max(len(active), 1)
+    return StepReport(errors=errors, compute_s=compute)
 
 
 def _build(cfg: GCSlamConfig, device: str = "cpu", monitor: Monitor | None = None) -> GCSlam:

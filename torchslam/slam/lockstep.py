@@ -31,6 +31,8 @@ from ..data.frame import Frame, Sequence
 from ..errors import ConfigError
 from .base import RunResult, SystemOutput, empty_output
 from .monitor import Monitor
+from . import gcslam as _gcslam
+from .gcslam import GCSlam, GCSlamConfig
 from .nislam import NISlam, NISlamConfig, track_frames
 
 __all__ = ["CPU_BATCH_PIXELS", "default_max_batch", "run_lockstep"]
@@ -48,25 +50,34 @@ logger = logging.getLogger(__name__)
 CPU_BATCH_PIXELS = 2**18
 
 
-def default_max_batch(system_cfg: NISlamConfig, device: str, n: int) -> int:
-    """Sequences per batched call when none is given: ``CPU_BATCH_PIXELS`` worth on the CPU, else all ``n``."""
+def default_max_batch(system_cfg: NISlamConfig | GCSlamConfig, device: str, n: int) -> int:
+    """Sequences per batched call when none is given: ``CPU_BATCH_PIXELS`` worth on the CPU, else all ``n``.
+
+    GC-SLAM batches only its FastGO solves, whose size does not grow with images: all ``n``.
+    """
+    if isinstance(system_cfg, GCSlamConfig):
+        return max(n, 1)
     if str(device).startswith("cpu"):
         return max(1, CPU_BATCH_PIXELS // (system_cfg.kcc.ortho_height * system_cfg.kcc.ortho_width))
     return max(n, 1)
 
 
 def run_lockstep(
-    system_cfg: NISlamConfig,
+    system_cfg: NISlamConfig | GCSlamConfig,
     sequences: list[Sequence],
     device: str = "cpu",
     monitors: list[Monitor] | None = None,
     max_frames: int | None = None,
     max_batch: int | None = None,
 ) -> list[RunResult | BaseException]:
-    """Run NI-SLAM on several sequences at once, one frame of each per step.
+    """Run NI-SLAM or GC-SLAM on several sequences at once, one frame of each per step.
+
+    NI-SLAM batches its per-frame tensor work (``nislam.track_frames``); GC-SLAM tracks each
+    frame on its own and optimises the new keyframes of all sequences in one FastGO call
+    (``gcslam.track_frames``, with the optimisation inline instead of in a thread).
 
     Args:
-        system_cfg: NI-SLAM settings, shared by every sequence.
+        system_cfg: NI-SLAM or GC-SLAM settings, shared by every sequence.
         sequences: the sequences; any lengths, cameras and image sizes (sequences that share a
             camera share the back-projection call, all share the tracking step).
         device: where tensors live ("cpu", "cuda", ...).
@@ -80,8 +91,8 @@ def run_lockstep(
     Raises:
         ConfigError: an argument is not what it should be (named in the message).
     """
-    if not isinstance(system_cfg, NISlamConfig):
-        raise ConfigError(f"system_cfg: expected an NISlamConfig, got {type(system_cfg).__name__}")
+    if not isinstance(system_cfg, (NISlamConfig, GCSlamConfig)):
+        raise ConfigError(f"system_cfg: expected an NISlamConfig or GCSlamConfig, got {type(system_cfg).__name__}")
     if not isinstance(sequences, (list, tuple)) or not sequences:
         raise ConfigError(f"sequences: expected a non-empty list of sequences, got {sequences!r}")
     if monitors is not None and len(monitors) != len(sequences):
@@ -95,7 +106,12 @@ def run_lockstep(
 
     n = len(sequences)
     monitors = list(monitors) if monitors is not None else [Monitor() for _ in range(n)]
-    systems: list[NISlam | None] = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
+    if isinstance(system_cfg, GCSlamConfig):
+        systems: list = [GCSlam(system_cfg, device=device, monitor=m, deferred=True) for m in monitors]
+        step = _gcslam.track_frames
+    else:
+        systems = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
+        step = track_frames
     failed: list[BaseException | None] = [None] * n
     outputs: list[SystemOutput | None] = [None] * n
     frames_in: list[Iterator[Frame] | None] = [None] * n
@@ -146,7 +162,7 @@ def run_lockstep(
                     frames.append(frame)
             if not stepping:
                 break
-            report = track_frames([systems[i] for i in stepping], frames, max_batch)
+            report = step([systems[i] for i in stepping], frames, max_batch)
             for k, i in enumerate(stepping):
                 compute[i] += report.compute_s[k]
                 if report.errors[k] is not None:
