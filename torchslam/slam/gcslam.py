@@ -637,13 +637,16 @@ class GCSlam:
         T_wk = torch.stack(opt.T_wk)
         kf_of = torch.tensor(self.frame_kf, dtype=torch.int64)
         T_wc = self._at_frame_times(T_wk[kf_of] @ torch.stack([T.cpu() for T in self.frame_T_kf]))
-        points, colors = self._map(T_wk)
+        points, colors = self._map(T_wk)  # clouds belong to the depth instants: optimised poses as they are
+        # keyframes.txt is stamped with the keyframes' colour timestamps: their re-sampled poses.
+        position = {f: p for p, f in enumerate(self.frame_index)}
+        kf_rows = torch.tensor([position[k.frame_index] for k in self.keyframes], dtype=torch.int64)
         return SystemOutput(
             frame_indices=torch.tensor(self.frame_index, dtype=torch.int64),
             timestamps=torch.tensor(self.frame_time, dtype=torch.float64),
             T_wc=T_wc,
             keyframe_indices=torch.tensor([k.frame_index for k in self.keyframes], dtype=torch.int64),
-            keyframe_T_wc=T_wk,
+            keyframe_T_wc=T_wc[kf_rows],
             map_points=points,
             map_colors=colors,
             stage_ms=stage_ms,
