@@ -44,7 +44,9 @@ Method, for B pairs at once:
    freedom, ``w = (nu + 1) / (nu + e^2)``, ``sigma`` its maximum-likelihood fixed point) or
    ``"huber"`` (``w = min(1, k / |e|)`` with ``k = huber_k`` and ``sigma = 1.4826 MAD``).
    The normal equations ``H = sum w_I / sigma_I^2 J_I^T J_I + lambda w_Z c_Z^2 / sigma_Z^2 J_Z^T J_Z``
-   (``c_Z = (z / 1 m)^-p``, ``lambda = geometric_weight``) are built and solved in float64. As in DVO, a step that raises
+   (``c_Z = (z / 1 m)^-p``, ``lambda = geometric_weight``) are accumulated as float32 Gram
+   products over a few pixel chunks whose sums are added in float64, and solved in float64 (the
+   per-pixel arithmetic is float32, both terms at once). As in DVO, a step that raises
    the mean robust cost (with the scales frozen) is undone and that pair stops at the level; a
    pair also stops when ``|delta| < tol``. Levels run coarse to fine.
 6. **Correspondences** (:func:`dense_correspondences`): at the finest level and the final pose,
@@ -99,8 +101,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-# Channels of DenseLevel.reference.
-_GREY, _GX, _GY, _Z, _ZX, _ZY, _ZOK, _IOK = range(8)
+# Channels of DenseLevel.reference: grey and depth, their x gradients, their y gradients, then the
+# masks, so that slices give both terms' values side by side ((B, 2, N), photometric first).
+_GREY, _Z, _GX, _ZX, _GY, _ZY, _ZOK, _IOK = range(8)
+# The float32 Gram products of the normal equations are summed in float64 over this many chunks.
+_GRAM_CHUNKS = 8
 # A bilinear sample of a {0, 1} mask counts as "all four neighbours set" above this.
 _ALL_SET = 1.0 - 1e-6
 # Fixed-point iterations of the t-distribution scale per Gauss-Newton iteration.
@@ -232,9 +237,9 @@ class DenseLevel:
         camera: ideal pinhole camera of the level (no distortion; size ``w x h``).
         grey: (B, 1, h, w) grey in [0, 1].
         depth: (B, 1, h, w) depth, metres, 0 = invalid.
-        reference: (B, 8, h, w) what a frame serves as reference: grey, its x/y gradient (per
-            pixel), depth, its x/y gradient (metres per pixel), the depth-smooth mask and the
-            inside-the-raw-image mask (eroded by one pixel), masks as 0/1.
+        reference: (B, 8, h, w) what a frame serves as reference: grey, depth, the x gradients
+            of grey (per pixel) and depth (metres per pixel), their y gradients, the depth-smooth
+            mask and the inside-the-raw-image mask (eroded by one pixel), masks as 0/1.
         points: (B, h*w, 3) back-projected pixels, metres, row-major (0 where invalid).
         valid: (B, h*w) bool, valid depth.
     """
@@ -343,7 +348,7 @@ def _build_level(cam: PinholeCamera, grey: Tensor, depth: Tensor, inside: Tensor
     all_valid = _min_pool3(valid.to(depth.dtype)) > 0
     smooth = all_valid & (zmax - zmin <= cfg.depth_edge_tolerance * depth)
     inside3 = _min_pool3(inside)
-    reference = torch.cat([grey, g, depth, dz, smooth.to(grey.dtype), inside3], dim=1)
+    reference = torch.cat([grey, depth, g[:, :1], dz[:, :1], g[:, 1:], dz[:, 1:], smooth.to(grey.dtype), inside3], dim=1)
     points, pvalid = backproject_depth(depth, cam.as_tensor(depth.dtype, depth.device))
     return DenseLevel(cam, grey, depth, reference, points, pvalid)
 
@@ -449,144 +454,172 @@ def _undistort(grey: Tensor, depth: Tensor, cam: PinholeCamera) -> tuple[Tensor,
 
 @dataclass(frozen=True)
 class _Warp:
-    """Frame-j pixels warped into frame i at one level (all (B, N, ...))."""
+    """Frame-j pixels warped into frame i at one level.
 
-    q: Tensor          # (B, N, 3) T_ij p_j in frame i
-    uv: Tensor         # (B, N, 2) landing pixel
+    The photometric and geometric terms are kept side by side as ``(B, 2, N)`` (term 0: ``r_I``,
+    term 1: ``r_Z``), so every per-pixel operation of the Gauss-Newton loop runs once for both.
+    """
+
+    q: Tensor          # (B, 3, N) T_ij p_j in frame i, channel-first
+    uv: Tensor         # (B, 2, N) landing pixel (clamped into the image where it missed)
     sample: Tensor     # (B, 8, N) reference channels at uv
-    r_I: Tensor        # (B, N) photometric residual (0 where invalid)
-    r_Z: Tensor        # (B, N) geometric residual, metres (0 where invalid)
-    c_Z: Tensor        # (B, N) depth-noise normaliser (z / 1 m)^-p of r_Z
-    m_I: Tensor        # (B, N) bool, photometric residual valid
-    m_Z: Tensor        # (B, N) bool, geometric residual valid
+    r: Tensor          # (B, 2, N) r_I and r_Z, metres for r_Z (0 where invalid)
+    rn: Tensor         # (B, 2, N) r_I and c_Z r_Z, the residuals the robust scales see (0 where invalid)
+    cn: Tensor         # (B, 2, N) 1 and the depth-noise normaliser c_Z = (z / 1 m)^-p, 0 where invalid
+    m: Tensor          # (B, 2, N) bool, residual valid
+    iz: Tensor         # (B, N) 1 / z (1 where the point is not in front of the camera)
+
+    @property
+    def r_I(self) -> Tensor:
+        return self.r[:, 0]
+
+    @property
+    def r_Z(self) -> Tensor:
+        return self.r[:, 1]
+
+    @property
+    def m_I(self) -> Tensor:
+        return self.m[:, 0]
+
+    @property
+    def m_Z(self) -> Tensor:
+        return self.m[:, 1]
 
 
 def _warp(li: DenseLevel, lj: DenseLevel, T_ij: Tensor, min_depth: float, depth_power: float = 0.0) -> _Warp:
     dtype = li.grey.dtype
     B, _, h, w = li.grey.shape
     T = T_ij.to(dtype)
-    q = lj.points @ T[:, :3, :3].transpose(-1, -2) + T[:, None, :3, 3]  # (B, N, 3)
-    z = q[..., 2]
+    # Channel-first (B, 3, N): every later per-pixel operation reads contiguous rows.
+    q = torch.baddbmm(T[:, :3, 3:], T[:, :3, :3], lj.points.transpose(1, 2))
+    x, y, z = q.unbind(1)
     front = lj.valid & (z > min_depth)
-    z_safe = torch.where(front, z, torch.ones_like(z))
+    iz = torch.where(front, z, torch.ones_like(z)).reciprocal_()
     cam = li.camera
-    u = cam.fx * q[..., 0] / z_safe + cam.cx
-    v = cam.fy * q[..., 1] / z_safe + cam.cy
+    u = (x * iz).mul_(cam.fx).add_(cam.cx)
+    v = (y * iz).mul_(cam.fy).add_(cam.cy)
     inside = front & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
-    # Points that miss the image are parked at the centre so every sample stays finite.
-    u = torch.where(inside, u, torch.full_like(u, (w - 1) / 2))
-    v = torch.where(inside, v, torch.full_like(v, (h - 1) / 2))
-    grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1)[:, :, None, :]  # (B, N, 1, 2)
-    s = F.grid_sample(li.reference, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    s = s[..., 0]  # (B, 8, N)
+    # Points that miss the image are clamped onto it so every sample stays finite (they are masked).
+    uv = torch.stack([u.clamp_(0, w - 1), v.clamp_(0, h - 1)], dim=1)  # (B, 2, N)
+    scale = uv.new_tensor([2.0 / (w - 1), 2.0 / (h - 1)])
+    grid = (uv.transpose(1, 2) * scale).sub_(1.0)[:, :, None, :]  # (B, N, 1, 2)
+    s = F.grid_sample(li.reference, grid, mode="bilinear", padding_mode="border", align_corners=True)[..., 0]  # (B, 8, N)
     m_I = inside & (s[:, _IOK] >= _ALL_SET)
     m_Z = m_I & (s[:, _ZOK] >= _ALL_SET)
-    grey_j = lj.grey.reshape(B, -1)
-    zero = torch.zeros_like(z)
-    r_I = torch.where(m_I, s[:, _GREY] - grey_j, zero)
-    r_Z = torch.where(m_Z, s[:, _Z] - z, zero)
-    c_Z = z_safe.pow(-depth_power) if depth_power else torch.ones_like(z)
-    return _Warp(q, torch.stack([u, v], dim=-1), s, r_I, r_Z, c_Z, m_I, m_Z)
+    m = torch.stack([m_I, m_Z], dim=1)  # (B, 2, N)
+    r = s[:, _GREY : _Z + 1] - torch.stack([lj.grey.reshape(B, -1), z], dim=1)
+    r = r.mul_(m)
+    if depth_power == 2.0:
+        c_Z = iz * iz
+    elif depth_power:
+        c_Z = iz.pow(depth_power)
+    else:
+        c_Z = torch.ones_like(iz)
+    cn = torch.stack([torch.ones_like(c_Z), c_Z], dim=1).mul_(m)
+    return _Warp(q, uv, s, r, r * cn, cn, m, iz)
 
 
-def _jacobians(wp: _Warp, cam: PinholeCamera) -> tuple[Tensor, Tensor]:
-    """(B, N, 6) derivatives of r_I and r_Z with respect to the left twist of ``T_ij``.
+def _jacobian_rows(wp: _Warp, cam: PinholeCamera) -> Tensor:
+    """(B, 7, 2, N) derivatives of ``rn`` (both terms) with respect to the left twist of ``T_ij``, then ``rn``.
 
-    Entries of invalid residuals are finite but meaningless (their weights are 0).
+    Rows 0-5 are the twist components, row 6 the residual itself, so one Gram product of the
+    weighted rows gives ``J^T W J``, ``J^T W r`` and ``r^T W r``. Entries of invalid residuals are 0.
     """
-    x, y, z = wp.q.unbind(-1)
-    iz = 1.0 / torch.where(wp.m_I, z, torch.ones_like(z))
+    x, y, z = (c[:, None] for c in wp.q.unbind(1))  # (B, 1, N)
     s = wp.sample
-
-    def twist_jacobian(gu: Tensor, gv: Tensor, dz: float) -> Tensor:
-        # Gradient g of the residual with respect to q = T_ij p_j: (gu, gv) J_pi, minus dz d(z)/dq.
-        # With dq = rho + phi x q, dr = g . rho + (q x g) . phi, so J = [g, q x g].
-        g0, g1 = gu * (cam.fx * iz), gv * (cam.fy * iz)
-        g2 = -(g0 * x + g1 * y) * iz - dz
-        # Stacked channel-first (contiguous rows), returned as a (B, N, 6) view.
-        J = torch.stack([g0, g1, g2, y * g2 - z * g1, z * g0 - x * g2, x * g1 - y * g0], dim=1)  # (B, 6, N)
-        return J.transpose(1, 2)
-
-    return twist_jacobian(s[:, _GX], s[:, _GY], 0.0), twist_jacobian(s[:, _ZX], s[:, _ZY], 1.0)
+    # Gradient of the residual with respect to q = T_ij p_j: (gu, gv) J_pi, minus d(z)/dq for r_Z,
+    # all scaled by cn (c_Z for the geometric term, 0 where invalid).
+    # With dq = rho + phi x q, dr = g . rho + (q x g) . phi, so J = [g, q x g].
+    ciz = wp.cn * wp.iz[:, None]
+    g0 = s[:, _GX : _ZX + 1] * ciz * cam.fx
+    g1 = s[:, _GY : _ZY + 1] * ciz * cam.fy
+    g2 = torch.addcmul(g0 * x, g1, y).mul_(-wp.iz[:, None])
+    g2[:, 1] -= wp.cn[:, 1]
+    rows = [g0, g1, g2, y * g2 - z * g1, z * g0 - x * g2, x * g1 - y * g0, wp.rn]
+    return torch.stack(rows, dim=1)
 
 
 def _linearize(
     li: DenseLevel, lj: DenseLevel, T_ij: Tensor, min_depth: float, depth_power: float = 0.0
 ) -> tuple[_Warp, Tensor, Tensor]:
-    """Residuals and analytic Jacobians of B pairs at one level (module docstring, step 5)."""
+    """Residuals and (B, N, 6) analytic Jacobians of ``r_I`` and ``c_Z r_Z`` at one level (module docstring, step 5)."""
     wp = _warp(li, lj, T_ij, min_depth, depth_power)
-    J_I, J_Z = _jacobians(wp, li.camera)
-    return wp, J_I, J_Z
+    A = _jacobian_rows(wp, li.camera)
+    return wp, A[:, :6, 0].transpose(1, 2), A[:, :6, 1].transpose(1, 2)
 
 
 # ---------------------------------------------------------------------------- robust weighting
 
 
-def _masked_mean(x: Tensor, m: Tensor) -> Tensor:
-    return (x * m).sum(-1) / m.sum(-1).clamp_min(1)
+def _floors(cfg: DenseConfig, like: Tensor) -> Tensor:
+    """(2,) lower bounds of the photometric and geometric scales."""
+    return like.new_tensor([cfg.sigma_floor_photometric, cfg.sigma_floor_geometric])
 
 
-def _scale(r: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, floor: float, start: Tensor | None) -> Tensor:
-    """(B,) robust scale of residuals ``r`` (B, N) over mask ``m``, at least ``floor``."""
+def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: Tensor | None) -> Tensor:
+    """(B, 2) robust scales of both terms' residuals ``rn`` (B, 2, N) over mask ``m``, at least their floors."""
+    floor = _floors(cfg, rn)
     if robust is DenseRobust.HUBER:
-        med = torch.where(m, r.abs(), torch.full_like(r, float("nan"))).nanmedian(dim=-1).values
-        sigma = _MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0)
-        return sigma.clamp_min(floor)
-    mf = m.to(r.dtype)
+        med = torch.where(m, rn.abs(), torch.full_like(rn, float("nan"))).nanmedian(dim=-1).values
+        return torch.maximum(_MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
     nu = cfg.student_t_dof
-    r2 = r * r
-    var = _masked_mean(r2, mf) if start is None else start * start
-    var = var.clamp_min(floor * floor)
+    n = m.sum(-1).clamp_min(1).to(rn.dtype)
+    r2 = rn * rn  # 0 where invalid, and so are all the terms summed below
+    var = r2.sum(-1) / n if start is None else start * start
+    floor2 = floor * floor
+    var = torch.maximum(var, floor2)
     for _ in range(_SCALE_ITERATIONS):
-        var = _masked_mean(r2 * (nu + 1) / (nu + r2 / var[:, None]), mf).clamp_min(floor * floor)
+        # mean of r2 (nu + 1) / (nu + r2 / var) = (nu + 1) var mean(r2 / (nu var + r2)).
+        t = (r2 / (r2 + (nu * var)[..., None])).sum(-1)
+        var = torch.maximum(t * var * ((nu + 1) / n), floor2)
     return var.sqrt()
 
 
-def _weight(e: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
-    """IRLS weights of normalised errors ``e``."""
+def _weight(e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """IRLS weights of normalised errors given their squares ``e2``."""
     if robust is DenseRobust.HUBER:
-        a = e.abs()
-        return torch.where(a > cfg.huber_k, cfg.huber_k / a.clamp_min(cfg.huber_k), torch.ones_like(e))
-    nu = cfg.student_t_dof
-    return (nu + 1) / (nu + e * e)
-
-
-def _rho(e: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
-    """Robust cost of normalised errors (the negative log-likelihood up to a constant)."""
-    if robust is DenseRobust.HUBER:
-        a = e.abs()
         k = cfg.huber_k
-        return torch.where(a <= k, 0.5 * e * e, k * (a - 0.5 * k))
+        return (k / e2.sqrt().clamp_min_(k)).clamp_max_(1.0)
     nu = cfg.student_t_dof
-    return 0.5 * (nu + 1) * torch.log1p(e * e / nu)
+    return (e2 + nu).reciprocal_().mul_(nu + 1)
 
 
-def _normalised_geometric(wp: _Warp) -> Tensor:
-    return wp.r_Z * wp.c_Z
+def _rho(e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """Robust cost of normalised errors given their squares ``e2`` (0 at 0)."""
+    if robust is DenseRobust.HUBER:
+        k = cfg.huber_k
+        a = e2.sqrt()
+        return torch.where(a <= k, 0.5 * e2, k * (a - 0.5 * k))
+    nu = cfg.student_t_dof
+    return (e2 * (1.0 / nu)).log1p_().mul_(0.5 * (nu + 1))
 
 
-def _cost(wp: _Warp, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+def _term_weights(cfg: DenseConfig, like: Tensor) -> Tensor:
+    """(2,) weights of the photometric and geometric mean costs: 1 and ``lambda``."""
+    return like.new_tensor([1.0, cfg.geometric_weight])
+
+
+def _cost(wp: _Warp, s: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
     """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one."""
-    c_I = _masked_mean(_rho(wp.r_I / s_I[:, None], robust, cfg), wp.m_I.to(s_I.dtype))
-    c_Z = _masked_mean(_rho(_normalised_geometric(wp) / s_Z[:, None], robust, cfg), wp.m_Z.to(s_Z.dtype))
-    return (c_I + cfg.geometric_weight * c_Z).double()
+    e2 = (wp.rn / s[..., None]).square_()
+    # Invalid residuals are 0 and cost 0: a plain sum over the pixels is the masked sum.
+    mean = _rho(e2, robust, cfg).sum(-1) / wp.m.sum(-1).clamp_min(1)
+    return (mean * _term_weights(cfg, mean)).sum(-1).double()
 
 
-def _normal_equations(
-    wp: _Warp, J_I: Tensor, J_Z: Tensor, s_I: Tensor, s_Z: Tensor, robust: DenseRobust, cfg: DenseConfig
-) -> tuple[Tensor, Tensor]:
-    """(B, 6, 6) ``H`` and (B, 6) ``g``, accumulated in float64 (module docstring, step 5)."""
-    rn_Z = _normalised_geometric(wp)
-    a = wp.m_I * _weight(wp.r_I / s_I[:, None], robust, cfg) / (s_I * s_I)[:, None]
-    # The depth-noise normaliser c_Z is a frozen per-pixel weight: H takes c_Z^2 J_Z^T J_Z.
-    b = wp.m_Z * _weight(rn_Z / s_Z[:, None], robust, cfg) * (cfg.geometric_weight / (s_Z * s_Z))[:, None]
-    sa, sb = a.sqrt(), b.sqrt() * wp.c_Z
-    # Square-root-weighted Jacobian rows and residuals of both terms, (B, 6, 2N) and (B, 2N).
-    Jw = torch.cat([J_I.transpose(1, 2) * sa[:, None, :], J_Z.transpose(1, 2) * sb[:, None, :]], dim=2).double()
-    rw = torch.cat([wp.r_I * sa, wp.r_Z * sb], dim=1).double()
-    H = Jw @ Jw.transpose(1, 2)
-    g = (Jw @ rw[..., None])[..., 0]
-    return H, g
+def _normal_equations(wp: _Warp, A: Tensor, s: Tensor, robust: DenseRobust, cfg: DenseConfig) -> tuple[Tensor, Tensor]:
+    """(B, 6, 6) ``H`` and (B, 6) ``g`` in float64 from the rows of :func:`_jacobian_rows` (module docstring, step 5)."""
+    B, _, _, N = A.shape
+    e2 = (wp.rn / s[..., None]).square_()
+    W = _weight(e2, robust, cfg).mul_(wp.m).mul_((_term_weights(cfg, s) / (s * s))[..., None])  # (B, 2, N)
+    A = A.reshape(B, 7, 2 * N)
+    Aw = A * W.reshape(B, 1, 2 * N)
+    # Gram products in float32 over a few chunks, summed in float64: float32 accumulation stays
+    # short and the float64 conversion touches only (B, 7, 7) per chunk.
+    G = sum(
+        (torch.bmm(a, b.transpose(1, 2)).double() for a, b in zip(Aw.tensor_split(_GRAM_CHUNKS, -1), A.tensor_split(_GRAM_CHUNKS, -1))),
+    )
+    return G[:, :6, :6], G[:, :6, 6]
 
 
 def _solve(H: Tensor, g: Tensor) -> tuple[Tensor, Tensor]:
@@ -633,11 +666,11 @@ def _subsample(cand: Tensor, k: int) -> Tensor:
 
 
 def _correspondences(wp: _Warp, li: DenseLevel, lj: DenseLevel, cfg: DenseConfig) -> DenseCorrespondences:
-    z = wp.q[..., 2]
+    z = wp.q[:, 2]
     cand = wp.m_Z & (wp.r_Z.abs() < cfg.correspondence_threshold * z)
     keep = _subsample(cand, cfg.max_correspondences)
     cam = li.camera
-    u, v = wp.uv.double().unbind(-1)
+    u, v = wp.uv.double().unbind(1)
     zi = wp.sample[:, _Z].double()
     points_i = torch.stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi], dim=-1)
     points_j = lj.points.double()
@@ -802,22 +835,22 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
     for level, n_iter in zip(reversed(range(cfg.levels)), cfg.iterations):
         li, lj = fi.levels[level], fj.levels[level]
         active = torch.ones(B, dtype=torch.bool, device=T.device)
-        T_prev, prev_cost = T, None
-        s_I = s_Z = None
+        T_prev, prev_cost, s = T, None, None
         for _ in range(n_iter):
             if not bool(active.any()):
                 break
-            wp, J_I, J_Z = _linearize(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
+            wp = _warp(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
             if prev_cost is not None:
                 # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
-                worse = active & (_cost(wp, s_I, s_Z, robust, cfg) > prev_cost)
+                worse = active & (_cost(wp, s, robust, cfg) > prev_cost)
                 T = torch.where(worse[:, None, None], T_prev, T)
                 iterations = iterations - worse.to(torch.int64)
                 active = active & ~worse
-            s_I = _scale(wp.r_I, wp.m_I, robust, cfg, cfg.sigma_floor_photometric, s_I)
-            s_Z = _scale(_normalised_geometric(wp), wp.m_Z, robust, cfg, cfg.sigma_floor_geometric, s_Z)
-            prev_cost = _cost(wp, s_I, s_Z, robust, cfg)
-            H, g = _normal_equations(wp, J_I, J_Z, s_I, s_Z, robust, cfg)
+                if not bool(active.any()):
+                    break
+            s = _scale(wp.rn, wp.m, robust, cfg, s)
+            prev_cost = _cost(wp, s, robust, cfg)
+            H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), s, robust, cfg)
             delta, solved = _solve(H, g)
             step = active & solved
             T_prev = T
