@@ -67,6 +67,7 @@ Convention:
 from __future__ import annotations
 
 import enum
+import functools
 import logging
 import math
 from dataclasses import dataclass, fields, replace
@@ -235,24 +236,38 @@ class DenseLevel:
 
     Attributes:
         camera: ideal pinhole camera of the level (no distortion; size ``w x h``).
+        depth_edge_tolerance: :attr:`DenseConfig.depth_edge_tolerance` (for :attr:`reference`).
         grey: (B, 1, h, w) grey in [0, 1].
         depth: (B, 1, h, w) depth, metres, 0 = invalid.
-        reference: (B, 8, h, w) what a frame serves as reference: grey, depth, the x gradients
-            of grey (per pixel) and depth (metres per pixel), their y gradients, the depth-smooth
-            mask and the inside-the-raw-image mask (eroded by one pixel), masks as 0/1.
+        inside: (B, 1, h, w) 0/1, the pixel's source lies inside the raw image (undistortion).
         points: (B, h*w, 3) back-projected pixels, metres, row-major (0 where invalid).
         valid: (B, h*w) bool, valid depth.
     """
 
     camera: PinholeCamera
+    depth_edge_tolerance: float
     grey: Tensor
     depth: Tensor
-    reference: Tensor
+    inside: Tensor
     points: Tensor
     valid: Tensor
 
+    @functools.cached_property
+    def reference(self) -> Tensor:
+        """(B, 8, h, w) what the frames serve as reference frames i.
+
+        Grey, depth, the x gradients of grey (per pixel) and depth (metres per pixel), their y
+        gradients, the depth-smooth mask and the inside-the-raw-image mask (eroded by one pixel),
+        masks as 0/1. Only a frame registered *against* needs it (a keyframe), so it is built on
+        first use and kept; an indexed, expanded or concatenated frame reuses it.
+        """
+        return _reference(self.grey, self.depth, self.inside, self.depth_edge_tolerance)
+
     def _map(self, fn) -> DenseLevel:
-        return DenseLevel(self.camera, *(fn(getattr(self, f.name)) for f in fields(self)[1:]))
+        out = DenseLevel(self.camera, self.depth_edge_tolerance, *(fn(getattr(self, f.name)) for f in fields(self)[2:]))
+        if "reference" in self.__dict__:
+            out.__dict__["reference"] = fn(self.__dict__["reference"])
+        return out
 
 
 @dataclass(frozen=True)
@@ -295,10 +310,14 @@ class DenseFrame:
         first = frames[0]
         for m, f in enumerate(frames[1:], 1):
             _check_compatible(first, f, f"frames[{m}]")
-        levels = tuple(
-            DenseLevel(lv.camera, *(torch.cat([getattr(f.levels[k], fl.name) for f in frames]) for fl in fields(lv)[1:]))
-            for k, lv in enumerate(first.levels)
-        )
+        levels = []
+        for k, lv in enumerate(first.levels):
+            parts = [f.levels[k] for f in frames]
+            out = DenseLevel(lv.camera, lv.depth_edge_tolerance, *(torch.cat([getattr(p, fl.name) for p in parts]) for fl in fields(lv)[2:]))
+            if all("reference" in p.__dict__ for p in parts):
+                out.__dict__["reference"] = torch.cat([p.reference for p in parts])
+            levels.append(out)
+        levels = tuple(levels)
         return DenseFrame(levels, first.camera, first.cfg)
 
     def _map(self, fn) -> DenseFrame:
@@ -339,18 +358,20 @@ def _min_pool3(x: Tensor) -> Tensor:
 
 
 def _build_level(cam: PinholeCamera, grey: Tensor, depth: Tensor, inside: Tensor, cfg: DenseConfig) -> DenseLevel:
-    g = kornia.filters.spatial_gradient(grey, mode="sobel", normalized=True)[:, 0]  # (B, 2, h, w)
-    valid = depth > 0
-    dz = kornia.filters.spatial_gradient(depth, mode="sobel", normalized=True)[:, 0]
-    big = torch.finfo(depth.dtype).max
-    zmax = F.max_pool2d(torch.where(valid, depth, torch.full_like(depth, -big)), 3, stride=1, padding=1)
-    zmin = -F.max_pool2d(torch.where(valid, -depth, torch.full_like(depth, -big)), 3, stride=1, padding=1)
-    all_valid = _min_pool3(valid.to(depth.dtype)) > 0
-    smooth = all_valid & (zmax - zmin <= cfg.depth_edge_tolerance * depth)
-    inside3 = _min_pool3(inside)
-    reference = torch.cat([grey, depth, g[:, :1], dz[:, :1], g[:, 1:], dz[:, 1:], smooth.to(grey.dtype), inside3], dim=1)
     points, pvalid = backproject_depth(depth, cam.as_tensor(depth.dtype, depth.device))
-    return DenseLevel(cam, grey, depth, reference, points, pvalid)
+    return DenseLevel(cam, cfg.depth_edge_tolerance, grey, depth, inside, points, pvalid)
+
+
+def _reference(grey: Tensor, depth: Tensor, inside: Tensor, edge_tolerance: float) -> Tensor:
+    """The (B, 8, h, w) channels of :attr:`DenseLevel.reference`."""
+    g = kornia.filters.spatial_gradient(grey, mode="sobel", normalized=True)[:, 0]  # (B, 2, h, w)
+    dz = kornia.filters.spatial_gradient(depth, mode="sobel", normalized=True)[:, 0]
+    # Invalid depth is 0, so a positive 3x3 minimum means all nine are valid (the padding is ignored).
+    zmax = F.max_pool2d(depth, 3, stride=1, padding=1)
+    zmin = _min_pool3(depth)
+    smooth = (zmin > 0) & (zmax - zmin <= edge_tolerance * depth)
+    inside3 = _min_pool3(inside)
+    return torch.cat([grey, depth, g[:, :1], dz[:, :1], g[:, 1:], dz[:, 1:], smooth.to(grey.dtype), inside3], dim=1)
 
 
 def prepare_dense_frame(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig | None = None) -> DenseFrame:
