@@ -105,6 +105,8 @@ logger = logging.getLogger(__name__)
 # Channels of DenseLevel.reference: grey and depth, their x gradients, their y gradients, then the
 # masks, so that slices give both terms' values side by side ((B, 2, N), photometric first).
 _GREY, _Z, _GX, _ZX, _GY, _ZY, _ZOK, _IOK = range(8)
+# ITU-R 601 luma weights of R, G, B (as kornia.color.rgb_to_grayscale).
+_GREY_WEIGHTS = (0.299, 0.587, 0.114)
 # The float32 Gram products of the normal equations are summed in float64 over this many chunks.
 _GRAM_CHUNKS = 8
 # A bilinear sample of a {0, 1} mask counts as "all four neighbours set" above this.
@@ -333,16 +335,28 @@ def _check_compatible(a: DenseFrame, b: DenseFrame, name: str) -> None:
         raise ShapeError(f"{name}: dtype {b.levels[0].grey.dtype} differs from {a.levels[0].grey.dtype}")
 
 
-def _reduce_depth(depth: Tensor, k: int, tol: float) -> Tensor:
-    """Valid-aware k x k reduction: the mean of a block's valid depths if they agree within ``tol``."""
-    valid = (depth > 0).to(depth.dtype)
-    count = F.avg_pool2d(valid, k) * (k * k)
-    total = F.avg_pool2d(depth * valid, k) * (k * k)
-    big = torch.finfo(depth.dtype).max
-    dmax = F.max_pool2d(torch.where(valid > 0, depth, torch.full_like(depth, -big)), k)
-    dmin = -F.max_pool2d(torch.where(valid > 0, -depth, torch.full_like(depth, -big)), k)
+def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi: float | None = None) -> Tensor:
+    """Valid-aware k x k reduction: the mean of a block's valid depths if they agree within ``tol``.
+
+    A depth is valid when positive, or, given ``lo`` and ``hi``, when in ``[lo, hi]`` (so NaN and
+    inf are not). The k x k strided sub-images are combined elementwise: no pooling indices and
+    no full-resolution masks.
+    """
+    h, w = depth.shape[-2] // k, depth.shape[-1] // k
+    total = count = dmax = dmin = None
+    for a in range(k):
+        for b in range(k):
+            sub = depth[..., a : h * k : k, b : w * k : k]
+            v = sub > 0 if lo is None else (sub >= lo) & (sub <= hi)
+            d = torch.where(v, sub, 0.0)
+            dm = torch.where(v, sub, torch.inf)
+            if total is None:
+                total, count, dmax, dmin = d, v.to(depth.dtype), d, dm
+            else:
+                total, count = total + d, count + v
+                dmax, dmin = torch.maximum(dmax, d), torch.minimum(dmin, dm)
     ok = (count > 0) & (dmax - dmin <= tol * dmin)
-    return torch.where(ok, total / count.clamp_min(1), torch.zeros_like(total))
+    return torch.where(ok, total / count.clamp_min(1), 0.0)
 
 
 def _crop(x: Tensor, h: int, w: int) -> Tensor:
@@ -428,27 +442,33 @@ def _prepare(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig
             f"rgb: {W}x{H} images give a {w}x{h} working resolution, too small for {cfg.levels} pyramid levels "
             "(the coarsest must be at least 8 pixels on each side)"
         )
-    grey = kornia.color.rgb_to_grayscale(rgb)
-    good = torch.isfinite(depth) & (depth >= cfg.min_depth) & (depth <= cfg.max_depth)
-    depth = torch.where(good, depth, torch.zeros_like(depth))
-    grey = _crop(grey, h * k, w * k)
-    depth = _crop(depth, h * k, w * k)
+    # Grey (ITU-R 601) and the k x k box average in one strided convolution.
+    weight = rgb.new_tensor(_GREY_WEIGHTS).div_(k * k).view(1, 3, 1, 1).expand(1, 3, k, k)
+    grey = F.conv2d(_crop(rgb, h * k, w * k), weight, stride=k)
     if k > 1:
-        grey = F.avg_pool2d(grey, k)
-        depth = _reduce_depth(depth, k, cfg.depth_merge_tolerance)
+        depth = _reduce_depth(depth, k, cfg.depth_merge_tolerance, cfg.min_depth, cfg.max_depth)
+    else:
+        good = (depth >= cfg.min_depth) & (depth <= cfg.max_depth)  # False for NaN
+        depth = torch.where(good, _crop(depth, h, w), 0.0)
     cam = _level_camera(camera, 1.0 / k, w, h)
-    inside = torch.ones_like(grey)
-    if cam.has_distortion:
+    inside = None
+    distorted = cam.has_distortion
+    if distorted:
         grey, depth, inside = _undistort(grey, depth, cam)
     cam = replace(cam, distortion=None)
+    if inside is None:
+        inside = torch.ones_like(grey)
 
     levels = [_build_level(cam, grey, depth, inside, cfg)]
     for _ in range(1, cfg.levels):
         h2, w2 = grey.shape[-2] // 2, grey.shape[-1] // 2
         grey = kornia.geometry.transform.pyrdown(_crop(grey, 2 * h2, 2 * w2))
         depth = _reduce_depth(_crop(depth, 2 * h2, 2 * w2), 2, cfg.depth_merge_tolerance)
-        # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
-        inside = (kornia.geometry.transform.pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
+        if distorted:
+            # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
+            inside = (kornia.geometry.transform.pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
+        else:
+            inside = torch.ones_like(grey)
         cam = _level_camera(cam, 0.5, w2, h2)
         levels.append(_build_level(cam, grey, depth, inside, cfg))
     return DenseFrame(tuple(levels), camera, cfg)
@@ -457,17 +477,27 @@ def _prepare(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig
 def _undistort(grey: Tensor, depth: Tensor, cam: PinholeCamera) -> tuple[Tensor, Tensor, Tensor]:
     """Resample distorted working images onto the ideal pinhole grid of the same intrinsics."""
     B, _, h, w = grey.shape
-    rays = undistorted_rays(replace(cam, distortion=None), torch.float64, grey.device)  # ideal rays of the output pixels
+    grid, inside = _undistortion_grid(cam, grey.dtype, grey.device)
+    grid = grid.expand(B, h, w, 2)
+    grey_u = F.grid_sample(grey, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    depth_u = F.grid_sample(depth, grid, mode="nearest", padding_mode="zeros", align_corners=True)
+    return grey_u, depth_u * inside, inside.expand(B, 1, h, w).contiguous()
+
+
+@functools.lru_cache(maxsize=8)
+def _undistortion_grid(cam: PinholeCamera, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(1, h, w, 2) sampling grid of the raw image for each ideal pixel, and (1, 1, h, w) 0/1 inside mask.
+
+    It depends on the camera only, so it is computed once per camera (never modified by callers).
+    """
+    h, w = cam.height, cam.width
+    rays = undistorted_rays(replace(cam, distortion=None), torch.float64, device)  # ideal rays of the output pixels
     xd = distort_normalized(rays, cam.distortion)
     u = cam.fx * xd[:, 0] + cam.cx
     v = cam.fy * xd[:, 1] + cam.cy
-    grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1).to(grey.dtype)
-    grid = grid.reshape(1, h, w, 2).expand(B, h, w, 2)
-    grey_u = F.grid_sample(grey, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    depth_u = F.grid_sample(depth, grid, mode="nearest", padding_mode="zeros", align_corners=True)
-    inside = ((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)).to(grey.dtype).reshape(1, 1, h, w).expand(B, 1, h, w)
-    depth_u = depth_u * inside
-    return grey_u, depth_u, inside.contiguous()
+    grid = torch.stack([u * (2.0 / (w - 1)) - 1, v * (2.0 / (h - 1)) - 1], dim=-1).to(dtype)
+    inside = ((u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)).to(dtype).reshape(1, 1, h, w)
+    return grid.reshape(1, h, w, 2), inside
 
 
 # ---------------------------------------------------------------------------- warp and linearisation
