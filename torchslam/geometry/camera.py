@@ -27,6 +27,7 @@ __all__ = [
     "PinholeCamera",
     "backproject_depth",
     "distort_normalized",
+    "distort_planes",
     "intrinsics_matrix",
     "project_points",
     "scale_intrinsics",
@@ -134,8 +135,26 @@ def distort_normalized(xy: Tensor, distortion: tuple[float, ...] | None) -> Tens
         return xy
     if len(distortion) not in _DISTORTION_LENGTHS:
         raise ShapeError(f"distortion: expected 0, 4, 5 or 8 coefficients, got {len(distortion)}")
-    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
     x, y = xy.unbind(-1)
+    return torch.stack(distort_planes(x, y, distortion), dim=-1)
+
+
+def distort_planes(x: Tensor, y: Tensor, distortion: tuple[float, ...]) -> tuple[Tensor, Tensor]:
+    """``distort_normalized`` on separate coordinate tensors (the same arithmetic, bit for bit).
+
+    Callers that hold the coordinates as planes (e.g. ``(B, 2, N)``) avoid interleaving them
+    into ``(..., 2)`` and back, which over a 640x480 image costs more than the model itself.
+    Inputs are trusted (``distort_normalized`` validates).
+
+    Args:
+        x: (...) ideal normalised ``X / Z``.
+        y: (...) ideal normalised ``Y / Z``, same shape.
+        distortion: coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]``.
+
+    Returns:
+        ``(x_d, y_d)`` distorted normalised coordinates.
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     if k4 or k5 or k6:
@@ -143,7 +162,7 @@ def distort_normalized(xy: Tensor, distortion: tuple[float, ...] | None) -> Tens
     xy2 = 2 * x * y
     xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x)
     yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2
-    return torch.stack([xd, yd], dim=-1)
+    return xd, yd
 
 
 def undistorted_rays(

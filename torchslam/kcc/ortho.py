@@ -26,7 +26,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
-from ..geometry.camera import distort_normalized
+from ..geometry.camera import distort_planes
+from ._select import where
 
 __all__ = [
     "OrthoImages",
@@ -109,9 +110,14 @@ def rgbd_to_points(
         check_float(rays, "rays")
         rx, ry = rays.to(depth.dtype)[None].unbind(-1)  # (1, H*W) each
     z = depth.reshape(B, H * W)
-    valid = torch.isfinite(z) & (z > 0)
-    z = torch.where(valid, z, 0.0)
-    points = torch.stack([rx * z, ry * z, z], dim=-1)  # (B, H*W, 3)
+    # isfinite(z) & (z > 0) in two cheap comparisons: NaN fails both, +inf the second.
+    valid = (z > 0) & (z < math.inf)
+    z = where(valid, z, 0.0)
+    # The points are stored one coordinate per plane, (B, 3, H*W), and returned as the (B, H*W, 3)
+    # transposed view: the rotations downstream (``_rotate_planar``) then read contiguous
+    # planes (~4x faster GEMM on CPU than over interleaved xyz), and stacking planes is a plain
+    # copy where interleaving costs ~1 ms per frame. The values are the same.
+    points = torch.stack([rx * z, ry * z, z], dim=1).transpose(1, 2)  # (B, H*W, 3)
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 
@@ -191,12 +197,14 @@ def sample_grey(
         intr = intr[None].expand(B, 4)
     check_shape(intr, "B 4", "intrinsics", dims)
     if distortion is not None and any(c != 0.0 for c in distortion):
-        g, front = _project_distorted(points, rotation.to(points.dtype), intr, distortion, H, W)
+        gx, gy, front = _project_distorted(points, rotation.to(points.dtype), intr, distortion, H, W)
     else:
-        g, front = _project_pinhole(points, rotation.to(points.dtype), intr, H, W)
+        gx, gy, front = _project_pinhole(points, rotation.to(points.dtype), intr, H, W)
     # u in [-0.5, W - 0.5] and v in [-0.5, H - 0.5] are |g| <= 1.
-    inside = (front & (g.abs() <= 1)).all(dim=1)  # (B, N)
-    grid = g.transpose(1, 2).reshape(B, H, W, 2)
+    inside = front & (gx.abs() <= 1) & (gy.abs() <= 1)  # (B, N)
+    # Interleaved as a complex tensor's (real, imag) pairs: bit-identical to stacking on a new
+    # last axis, which copies element by element (~0.7 ms per 640x480 frame on CPU, 0.08 this way).
+    grid = torch.view_as_real(torch.complex(gx, gy)).view(B, H, W, 2)
     if grey_image is None:
         grey_image = grey_from_rgb(rgb)
     else:
@@ -205,11 +213,17 @@ def sample_grey(
     grey_img = grey_image.to(rgb.dtype).view(B, 1, H, W)
     grey = F.grid_sample(grey_img, grid.to(grey_img.dtype), mode="bilinear", padding_mode="border", align_corners=False)
     ok = valid & inside
-    return torch.where(ok, grey.flatten(1).to(points.dtype), points.new_zeros(())), ok
+    return where(ok, grey.flatten(1).to(points.dtype), 0.0), ok
 
 
-def _project_pinhole(points: Tensor, rotation: Tensor, intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
-    """(B, 2, N) grid_sample coordinates of rotated points under the pinhole, and (B, 1, N) z > 0."""
+# The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come
+# out of ``_rotate_planar`` as planes, and interleaving them into (B, N, 2) before the
+# element-wise arithmetic made every later op strided (~5 ms per 640x480 frame on CPU instead of
+# ~1 ms). Only the final grid is interleaved, once, as ``grid_sample`` needs it.
+
+
+def _project_pinhole(points: Tensor, rotation: Tensor, intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
+    """(B, N) grid_sample coordinates ``gx``, ``gy`` of rotated points under the pinhole, and (B, N) z > 0."""
     B = points.shape[0]
     # Rotation, pinhole projection and grid_sample's normalised coordinates in one 3x3 map:
     # gx = (2u + 1) / W - 1 with u = fx x / z + cx, i.e. the rows of S K R applied to p, over z.
@@ -220,25 +234,24 @@ def _project_pinhole(points: Tensor, rotation: Tensor, intr: Tensor, H: int, W: 
     S[:, 1, 1] = 2 * intr[:, 1] / H
     S[:, 1, 2] = (2 * intr[:, 3] + 1) / H - 1
     S[:, 2, 2] = 1
-    n = _rotate_planar(points, S @ rotation)  # (B, 3, N)
-    z = n[:, 2:3]
+    nx, ny, z = _rotate_planar(points, S @ rotation).unbind(1)  # (B, N) each
     front = z > 0
-    return n[:, :2] / torch.where(front, z, 1.0), front  # (B, 2, N) normalised image coordinates
+    z = where(front, z, 1.0)
+    return nx / z, ny / z, front
 
 
 def _project_distorted(
     points: Tensor, rotation: Tensor, intr: Tensor, distortion: tuple[float, ...], H: int, W: int
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """As ``_project_pinhole`` with the Brown-Conrady distortion applied to ``(x / z, y / z)``."""
-    n = _rotate_planar(points, rotation)  # (B, 3, N)
-    z = n[:, 2:3]
+    nx, ny, z = _rotate_planar(points, rotation).unbind(1)  # (B, N) each
     front = z > 0
-    xy = n[:, :2] / torch.where(front, z, 1.0)  # (B, 2, N) ideal normalised coordinates
-    xd = distort_normalized(xy.transpose(1, 2), distortion).transpose(1, 2)  # (B, 2, N)
+    z = where(front, z, 1.0)
+    xd, yd = distort_planes(nx / z, ny / z, distortion)  # distorted normalised coordinates
     # gx = (2u + 1) / W - 1 with u = fx x_d + cx (and likewise for v).
-    scale = torch.stack([2 * intr[:, 0] / W, 2 * intr[:, 1] / H], dim=-1)[..., None]  # (B, 2, 1)
-    offset = torch.stack([(2 * intr[:, 2] + 1) / W - 1, (2 * intr[:, 3] + 1) / H - 1], dim=-1)[..., None]
-    return xd * scale + offset, front
+    gx = xd * (2 * intr[:, 0:1] / W) + ((2 * intr[:, 2:3] + 1) / W - 1)
+    gy = yd * (2 * intr[:, 1:2] / H) + ((2 * intr[:, 3:4] + 1) / H - 1)
+    return gx, gy, front
 
 
 def _check_size(size: tuple[int, int]) -> tuple[int, int]:

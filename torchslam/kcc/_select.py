@@ -1,0 +1,56 @@
+"""Element-wise selection that is fast on CPU: ``torch.where`` computed bitwise.
+
+On the CPU build torchslam uses, ``torch.where`` over a bool mask is not vectorised: for the
+307,200 points of a 640x480 frame it costs ~0.9 ms in float32, against ~0.06-0.14 ms for the same
+selection done with integer bit operations on the values' bit patterns. The NI-SLAM front-end
+selects about a dozen full-resolution arrays per frame, so this is several milliseconds per
+frame. The bitwise form gives bit-identical results (it moves bit patterns, it does no
+arithmetic), including NaN, inf and signed zeros.
+
+It falls back to ``torch.where`` where it would not help or not be valid: off the CPU (GPU
+``where`` is already a vectorised kernel), when autograd has to see the selection, and for
+dtypes or mixed-dtype operands the bit trick does not cover.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+_BITS = {
+    torch.float32: torch.int32,
+    torch.float64: torch.int64,
+    torch.int32: torch.int32,
+    torch.int64: torch.int64,
+}
+
+
+def where(mask: Tensor, a: Tensor, b: Tensor | float | int) -> Tensor:
+    """``torch.where(mask, a, b)`` (with broadcasting), bit for bit.
+
+    Args:
+        mask: bool tensor broadcastable with ``a``.
+        a: values where ``mask`` is True.
+        b: values where it is False: a tensor of ``a``'s dtype, or a Python number.
+
+    Returns:
+        The selection, in ``a``'s dtype.
+    """
+    bits = _BITS.get(a.dtype)
+    scalar = not isinstance(b, Tensor)
+    if (
+        bits is None
+        or a.device.type != "cpu"
+        or mask.dtype != torch.bool
+        or (not scalar and (b.dtype != a.dtype or b.device != a.device))
+        or (torch.is_grad_enabled() and (a.requires_grad or (not scalar and b.requires_grad)))
+    ):
+        return torch.where(mask, a, b)
+    ones = mask.to(bits).neg_()  # all bits set where True, none where False
+    a_bits = a.view(bits)
+    if scalar and b == 0 and math.copysign(1.0, b) > 0:
+        return (a_bits & ones).view(a.dtype)  # +0 has no bits set
+    b_bits = (a.new_full((), b) if scalar else b).view(bits)
+    return (b_bits ^ ((a_bits ^ b_bits) & ones)).view(a.dtype)
