@@ -27,6 +27,7 @@ from torchslam.registration.dense import (
     DenseFrame,
     _linearize,
     _reduce_depth,
+    _select_pixels,
     _subsample,
     _warp,
     dense_correspondences,
@@ -116,6 +117,41 @@ def test_subsample_keeps_an_even_deterministic_subset():
     gaps = ranks.diff()
     assert gaps.min() >= int(counts[0]) // 100 and gaps.max() <= int(counts[0]) // 100 + 1
     assert torch.equal(keep, _subsample(cand, 100))
+
+
+@pytest.mark.parametrize("step", [1, 2, 3])
+def test_pixel_selection_matches_loop(synthetic, step):
+    cam, rgb, depth, _ = synthetic
+    holes = depth[:2].clone()
+    holes[0, :, :, :100] = 0.0  # the two frames keep different numbers of pixels
+    lv = prepare_dense_frame(rgb[:2], holes, cam, DenseConfig()).levels[0]
+    px = _select_pixels(lv, step)
+    h, w = lv.grey.shape[-2:]
+    M = px.valid.shape[1]
+    for b in range(2):
+        want = [r * w + c for r in range(h) for c in range(w) if (r + c) % step == 0 and lv.valid[b, r * w + c]]
+        n = len(want)
+        assert int(px.valid[b].sum()) == n and px.valid[b, :n].all()
+        assert torch.equal(px.points[b, :n], lv.points[b, want])
+        assert torch.equal(px.grey[b, :n], lv.grey[b].reshape(-1)[want])
+    assert M == max(int(px.valid[b].sum()) for b in range(2))
+    # No valid depth at all: one invalid placeholder pixel, never an empty list.
+    empty = prepare_dense_frame(rgb[:1], depth[:1] * 0, cam, DenseConfig()).levels[0]
+    assert _select_pixels(empty, step).valid.shape == (1, 1) and not _select_pixels(empty, step).valid.any()
+
+
+def test_reference_built_once_and_kept_by_index_expand_cat(synthetic):
+    cam, rgb, depth, _ = synthetic
+    cfg = DenseConfig()
+    a, b = prepare_dense_frame(rgb[:1], depth[:1], cam, cfg), prepare_dense_frame(rgb[1:2], depth[1:2], cam, cfg)
+    both = prepare_dense_frame(rgb[:2], depth[:2], cam, cfg)
+    assert all("reference" not in lv.__dict__ for lv in a.levels)  # a current frame never needs it
+    ref_a, ref_b = a.levels[0].reference, b.levels[0].reference
+    assert a.levels[0].reference is ref_a  # kept
+    assert a.expand(3).levels[0].reference.data_ptr() == ref_a.data_ptr()  # a view, not rebuilt
+    cat = DenseFrame.cat([a, b])
+    assert "reference" in cat.levels[0].__dict__ and torch.equal(cat.levels[0].reference, both.levels[0].reference)
+    assert torch.equal(both[1].levels[0].reference, ref_b)
 
 
 # ------------------------------------------------------------------ Jacobian
