@@ -728,7 +728,7 @@ def _subsample(cand: Tensor, k: int) -> Tensor:
     return cand & ((c <= k) | step)
 
 
-def _correspondences(wp: _Warp, li: DenseLevel, lj: DenseLevel, cfg: DenseConfig) -> DenseCorrespondences:
+def _correspondences(wp: _Warp, li: DenseLevel, lj: DenseLevel | _Pixels, cfg: DenseConfig) -> DenseCorrespondences:
     z = wp.q[:, 2]
     cand = wp.m_Z & (wp.r_Z.abs() < cfg.correspondence_threshold * z)
     keep = _subsample(cand, cfg.max_correspondences)
@@ -952,8 +952,10 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
             iterations = iterations + step.to(torch.int64)
             active = step & (torch.linalg.vector_norm(delta, dim=-1) >= cfg.tol)
-    wp = _warp(fi.levels[0], fj.levels[0], T, cfg.min_depth)
-    corr = _correspondences(wp, fi.levels[0], fj.levels[0], cfg)
+    # Correspondences and residuals from the valid-depth pixels only (the rest never count).
+    px = _select_pixels(fj.levels[0], 1)
+    wp = _warp(fi.levels[0], px, T, cfg.min_depth)
+    corr = _correspondences(wp, fi.levels[0], px, cfg)
     count = corr.mask.sum(-1)
     finite = torch.isfinite(T).all(-1).all(-1)
     success = finite & (count >= cfg.min_correspondences)
