@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DTypeError, check_float, check_shape
+from ._select import where
 from .ortho import OrthoImages
 
 __all__ = ["DepthTranslation", "KeyframeMap", "depth_translation", "fuse_keyframe", "keyframe_map", "shift_image"]
@@ -259,13 +260,13 @@ def fuse_keyframe(
     s = wz + wx
     # Incremental form of the moving average, z + (w^x / s)(x - z): identical aligned content
     # stays bit-identical for any weights, and a hole (w^z = 0) takes the frame's value exactly.
-    frac = wx / torch.where(s > 0, s, torch.ones_like(s))
+    frac = wx / where(s > 0, s, 1.0)
     zg, zd = keyframe.grey.to(dt), keyframe.depth.to(dt)
     grey = zg + frac * (xg.to(dt) - zg)
     depth = zd + frac * ((xd.to(dt) - t_z.to(dt)[:, None, None]) - zd)
     fuse = (psr > T_M)[:, None, None]
     return KeyframeMap(
-        grey=torch.where(fuse, grey, zg),
-        depth=torch.where(fuse, depth, zd),
-        weight=torch.where(fuse, s, wz),
+        grey=where(fuse, grey, zg),
+        depth=where(fuse, depth, zd),
+        weight=where(fuse, s, wz),
     )

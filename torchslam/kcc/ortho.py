@@ -433,7 +433,7 @@ def orthographic_project(
     inside &= u < W
     inside &= v >= 0
     inside &= v < H
-    inside &= torch.isfinite(z)
+    inside &= z.abs() < math.inf  # isfinite(z) (NaN fails the comparison), in a third of the time
     # Truncation is floor for the non-negative coordinates that matter; the others (including
     # NaN) are replaced by the trash slot below, whatever integer they became. Pixel indices fit
     # int32 (checked above); only the scatter needs them as int64.
@@ -442,7 +442,7 @@ def orthographic_project(
     if B > 1:
         pix += torch.arange(0, B * HW, HW, dtype=idt, device=q.device)[:, None]
     trash = B * HW  # one extra slot collects every point that is not rendered
-    flat = torch.where(inside, pix, trash).flatten().long()  # (B*N,)
+    flat = where(inside, pix, trash).flatten().long()  # (B*N,)
     # One scatter does the whole z-buffer: each point's key packs an order-preserving integer
     # image of its float32 z (high 32 bits) with its flat point index (low 32 bits), so the
     # per-pixel minimum key is the nearest point, ties going to the lowest index.
@@ -454,9 +454,8 @@ def orthographic_project(
     best = best.scatter_reduce_(0, flat, key, reduce="amin", include_self=True)[:trash]  # (B*H*W,)
     pix_valid = best != empty
     src = best.bitwise_and_(0xFFFFFFFF).clamp_(max=B * N - 1)
-    zero = q.new_zeros(())
-    out_grey = torch.where(pix_valid, grey.to(q.dtype).flatten().index_select(0, src), zero)
-    out_depth = torch.where(pix_valid, z.flatten().index_select(0, src), zero)
+    out_grey = where(pix_valid, grey.to(q.dtype).flatten().index_select(0, src), 0.0)
+    out_depth = where(pix_valid, z.flatten().index_select(0, src), 0.0)
     return OrthoImages(
         grey=out_grey.view(B, H, W),
         depth=out_depth.view(B, H, W),
