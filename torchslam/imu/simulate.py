@@ -217,8 +217,10 @@ def interpolate_rotations(
     alpha = torch.where(span > 0, (times - t0) / torch.where(span > 0, span, torch.ones_like(span)), torch.zeros_like(span))
     # A nanosecond of slack so a stream sampled exactly every max_gap seconds is not rejected by round-off.
     valid = (times >= timestamps[0]) & (times <= timestamps[-1]) & (span <= max_gap + 1e-9)
-    q = rotmat_to_quat_xyzw(R)
-    Ri = quat_xyzw_to_rotmat(quat_xyzw_slerp(q[lo], q[hi], alpha.to(R.dtype)))
+    # Only the bracketing samples are converted (the quaternion of each rotation does not depend
+    # on the others): converting the whole stream for every query cost NI-SLAM ~0.5 ms a frame.
+    q = rotmat_to_quat_xyzw(torch.cat([R[lo], R[hi]]))  # (2M, 4)
+    Ri = quat_xyzw_to_rotmat(quat_xyzw_slerp(q[:m], q[m:], alpha.to(R.dtype)))
     return torch.where(valid[:, None, None], Ri, eye), valid
 
 
