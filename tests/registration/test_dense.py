@@ -134,6 +134,9 @@ def test_pixel_selection_matches_loop(synthetic, step):
         assert int(px.valid[b].sum()) == n and px.valid[b, :n].all()
         assert torch.equal(px.points[b, :n], lv.points[b, want])
         assert torch.equal(px.grey[b, :n], lv.grey[b].reshape(-1)[want])
+        one = _select_pixels(lv._map(lambda x: x[b : b + 1]), step)  # the single-frame path
+        assert one.valid.shape == (1, n) and one.valid.all()
+        assert torch.equal(one.points[0], px.points[b, :n]) and torch.equal(one.grey[0], px.grey[b, :n])
     assert M == max(int(px.valid[b].sum()) for b in range(2))
     # No valid depth at all: one invalid placeholder pixel, never an empty list.
     empty = prepare_dense_frame(rgb[:1], depth[:1] * 0, cam, DenseConfig()).levels[0]

@@ -912,6 +912,12 @@ def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
         r = torch.arange(h, device=keep.device)[:, None]
         c = torch.arange(w, device=keep.device)[None, :]
         keep = keep & ((r + c) % step == 0).reshape(1, -1)
+    if B == 1:
+        # One frame (tracking): the kept indices directly, no padding.
+        idx = keep[0].nonzero()[:, 0]
+        if idx.numel() == 0:
+            return _Pixels(lv.grey.reshape(1, -1)[:, :1], lv.points[:, :1], torch.zeros_like(keep[:, :1]))
+        return _Pixels(lv.grey.reshape(1, -1)[:, idx], lv.points[:, idx], keep.new_ones(1, idx.numel()))
     count = keep.sum(-1)
     M = max(int(count.max()), 1)
     pos = torch.where(keep, keep.cumsum(-1) - 1, M)  # slot of each kept pixel; M collects the rest
