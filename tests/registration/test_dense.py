@@ -6,6 +6,7 @@ import dataclasses
 import functools
 from pathlib import Path
 
+import kornia
 import pytest
 import torch
 import torch.nn.functional as F
@@ -102,6 +103,26 @@ def test_valid_aware_depth_reduction_matches_loop():
     assert out[0, 0, 0, 0] == 0
     assert torch.equal(out > 0, ref > 0) and (ref > 0).sum() > 5 and (ref == 0).sum() > 5
     torch.testing.assert_close(out, ref, rtol=0, atol=1e-12)
+
+
+def test_working_images_match_kornia_grey_and_a_masked_block_loop():
+    g = torch.Generator().manual_seed(4)
+    H, W = 48, 64
+    cam = PinholeCamera(60.0, 60.0, 31.5, 23.5, W, H)
+    rgb = torch.rand(2, 3, H, W, generator=g, dtype=F64)
+    depth = 1.0 + 0.02 * torch.rand(2, 1, H, W, generator=g, dtype=F64)
+    bad = torch.rand(depth.shape, generator=g)
+    depth[bad < 0.05] = float("nan")
+    depth[(bad >= 0.05) & (bad < 0.1)] = float("inf")
+    depth[(bad >= 0.1) & (bad < 0.15)] = 0.05  # below min_depth
+    depth[(bad >= 0.15) & (bad < 0.2)] = 0.0
+    cfg = DenseConfig(width=32, height=24, levels=1, iterations=(1,))
+    lv = prepare_dense_frame(rgb, depth, cam, cfg).levels[0]
+    torch.testing.assert_close(lv.grey, F.avg_pool2d(kornia.color.rgb_to_grayscale(rgb), 2), rtol=0, atol=1e-12)
+    good = torch.isfinite(depth) & (depth >= cfg.min_depth) & (depth <= cfg.max_depth)
+    ref = _reduce_depth(torch.where(good, depth, torch.zeros_like(depth)), 2, cfg.depth_merge_tolerance)
+    torch.testing.assert_close(lv.depth, ref, rtol=0, atol=1e-12)
+    assert (lv.depth > 0).float().mean() > 0.3 and (lv.depth == 0).any()
 
 
 def test_subsample_keeps_an_even_deterministic_subset():

@@ -456,7 +456,7 @@ def _prepare(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig
             "(the coarsest must be at least 8 pixels on each side)"
         )
     # Grey (ITU-R 601) and the k x k box average in one strided convolution.
-    weight = rgb.new_tensor(_GREY_WEIGHTS).div_(k * k).view(1, 3, 1, 1).expand(1, 3, k, k)
+    weight = rgb.new_tensor(_GREY_WEIGHTS).div_(k * k).view(1, 3, 1, 1).expand(1, 3, k, k).contiguous()
     grey = F.conv2d(_crop(rgb, h * k, w * k), weight, stride=k)
     if k > 1:
         depth = _reduce_depth(depth, k, cfg.depth_merge_tolerance, cfg.min_depth, cfg.max_depth)
