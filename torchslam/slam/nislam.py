@@ -993,15 +993,33 @@ def _groups(items: list[int], key) -> list[list[int]]:
     return list(out.values())
 
 
+def _dense(t: Tensor) -> bool:
+    """Whether ``t`` covers one gap-free block of its storage in some dimension order.
+
+    True for contiguous tensors and for permuted views of them, such as the (1, N, 3) rows of
+    ``rgbd_to_points``' clouds, which are stored as (1, 3, N) coordinate planes.
+    """
+    expected = 1
+    for stride, size in sorted((st, sz) for st, sz in zip(t.stride(), t.shape) if sz > 1):
+        if stride != expected:
+            return False
+        expected *= size
+    return True
+
+
 def _stack_rows(rows: list[Tensor]) -> Tensor:
-    """Concatenate (1, ...) tensors along dim 0, without a copy where they are consecutive rows of one tensor."""
+    """Concatenate (1, ...) tensors along dim 0, without a copy where they are consecutive rows of one tensor.
+
+    Rows of one batch keep their memory layout (e.g. the coordinate planes of a point cloud) in
+    the stacked view; a copy (``torch.cat``) is made only where they are not consecutive.
+    """
     first = rows[0]
     if len(rows) == 1:
         return first
     step = first.numel()
     storage = first.untyped_storage().data_ptr()
-    if all(
-        r.is_contiguous() and r.shape == first.shape and r.dtype == first.dtype and r.device == first.device
+    if _dense(first) and all(
+        r.shape == first.shape and r.stride() == first.stride() and r.dtype == first.dtype and r.device == first.device
         and r.untyped_storage().data_ptr() == storage and r.storage_offset() == first.storage_offset() + k * step
         for k, r in enumerate(rows)
     ):
