@@ -7,6 +7,8 @@ import yaml
 from torchslam.config import config_from_dict, config_to_dict, load_config, parse_overrides, save_config
 from torchslam.errors import ConfigError
 
+from .conftest import REPO_ROOT
+
 
 class Mode(enum.Enum):
     FAST = "fast"
@@ -70,3 +72,24 @@ def test_malformed_yaml_reports_line(tmp_path):
         load_config(Outer, path)
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(Outer, tmp_path / "missing.yaml")
+
+
+def _missing_keys(defaults: dict, stated: dict, prefix: str = "") -> list[str]:
+    out = []
+    for key, value in defaults.items():
+        if key not in stated:
+            out.append(prefix + key)
+        elif isinstance(value, dict) and isinstance(stated[key], dict):
+            out += _missing_keys(value, stated[key], f"{prefix}{key}.")
+    return out
+
+
+@pytest.mark.parametrize("system", ["nislam", "gcslam"])
+def test_each_system_yaml_states_every_default(system):
+    """configs/<system>.yaml is the documentation of the defaults: complete and equal to the code."""
+    from torchslam.slam.registry import get_system
+
+    cls = get_system(system).config_cls
+    path = REPO_ROOT / "configs" / f"{system}.yaml"
+    assert load_config(cls, path) == cls()
+    assert _missing_keys(config_to_dict(cls()), yaml.safe_load(path.read_text())) == []

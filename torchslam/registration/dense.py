@@ -178,9 +178,9 @@ class DenseConfig:
             was 1.319 / 1.862 / 2.459 cm on fr1/xyz, 7-Scenes and HoloLens against
             1.320 / 1.856 / 2.715 cm with every pixel, at half the cost of the finest iterations.
         tol: a pair stops at a level when its step's twist norm is below this (metres/radians).
-            The IRLS steps shrink only by about half per iteration: 1e-4 (0.1 mm) saves about
-            a quarter of the iterations of 1e-6 (14.6 against 20.0 per fr1/xyz pair), with ATE
-            changes below 0.005 cm on fr1/xyz, 7-Scenes and HoloLens.
+            The IRLS steps shrink only by about half per iteration: the default 1e-4 (0.1 mm)
+            saves about a quarter of the iterations of 1e-6 (14.6 against 20.0 per fr1/xyz
+            pair), with ATE changes below 0.005 cm on fr1/xyz, 7-Scenes and HoloLens.
     """
 
     width: int = 320
@@ -201,7 +201,7 @@ class DenseConfig:
     max_correspondences: int = 50000
     correspondence_threshold: float = 0.02
     min_correspondences: int = 1000
-    tol: float = 1e-6
+    tol: float = 1e-4
     finest_pixel_step: int = 2
 
     def __post_init__(self) -> None:
