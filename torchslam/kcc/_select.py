@@ -27,7 +27,7 @@ _BITS = {
 }
 
 
-def where(mask: Tensor, a: Tensor, b: Tensor | float | int) -> Tensor:
+def where(mask: Tensor, a: Tensor, b: Tensor | float) -> Tensor:
     """``torch.where(mask, a, b)`` (with broadcasting), bit for bit.
 
     Args:

@@ -90,7 +90,8 @@ def rgbd_to_points(
             uses the ideal pinhole factors ``(u - c) / f``.
 
     Returns:
-        points: (B, H*W, 3) camera-frame points, metres.
+        points: (B, H*W, 3) camera-frame points, metres, 0 where invalid: the transposed view of
+            (B, 3, H*W) coordinate planes (``points.transpose(1, 2)`` is contiguous).
         grey: (B, H*W) grey value of each point.
         valid: (B, H*W) bool, True where depth is valid.
     """
