@@ -182,3 +182,18 @@ def test_bad_config_values_name_the_key():
         config_from_dict(GCSlamConfig, {"keyframe_displacement": 0})
     with pytest.raises(ConfigError, match="sparse.nope"):
         config_from_dict(GCSlamConfig, {"sparse": {"nope": 1}})
+
+
+@pytest.mark.parametrize("threaded", [True, False])
+def test_optimiser_failure_is_reported_not_lost(monkeypatch, threaded):
+    seq = generate_sequence(SyntheticConfig(frames=30, trajectory="orbit", seed=7, **SMALL))
+    real = gc._Optimizer._begin
+
+    def begin(self, ev):
+        if ev.kf == 2:
+            raise RuntimeError("planted optimiser failure")
+        return real(self, ev)
+
+    monkeypatch.setattr(gc._Optimizer, "_begin", begin)
+    with pytest.raises((RuntimeError, gc.TorchSlamError), match="planted optimiser failure"):
+        run_sequence(GCSlam(GCSlamConfig(threaded=threaded)), seq)

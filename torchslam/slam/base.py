@@ -10,15 +10,16 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
 
 from ..data.frame import Frame, Sequence
 
-__all__ = ["SlamSystem", "SystemOutput", "RunResult", "empty_output", "run_sequence"]
+__all__ = ["RunResult", "SlamSystem", "SystemOutput", "empty_output", "resample_poses", "run_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -152,3 +153,29 @@ def empty_output(dtype: torch.dtype = torch.float64) -> SystemOutput:
         keyframe_indices=torch.zeros(0, dtype=torch.int64),
         keyframe_T_wc=torch.zeros(0, 4, 4, dtype=dtype),
     )
+
+
+def resample_poses(t_from: Tensor, T_from: Tensor, t_to: Tensor, max_gap: float) -> Tensor:
+    """Re-sample poses taken at instants ``t_from`` at the instants ``t_to`` (one per pose).
+
+    Both systems track each frame at its depth image's instant, while the trajectory is reported
+    at the frame (colour) timestamps; on TUM fr1 the two alternate ~15 ms before and after each
+    other, which at 0.4 m/s is ±6 mm. Poses are interpolated (linear in translation, SLERP in
+    rotation) between neighbouring instants of ``t_from``; poses outside their span, across a
+    gap longer than ``max_gap``, or of a non-increasing ``t_from`` are kept as they are.
+
+    Args:
+        t_from: (N,) float64 instants of ``T_from``, seconds.
+        T_from: (N, 4, 4) float64 poses.
+        t_to: (N,) float64 instants to report them at.
+        max_gap: largest gap of ``t_from`` interpolated across, seconds.
+
+    Returns:
+        (N, 4, 4) poses at ``t_to``.
+    """
+    from ..data.trajectory import Trajectory
+
+    if len(t_from) < 2 or torch.equal(t_from, t_to) or not bool((t_from[1:] > t_from[:-1]).all()):
+        return T_from
+    T, ok = Trajectory(t_from, T_from).interpolate(t_to, max_gap)
+    return torch.where(ok[:, None, None], T, T_from)

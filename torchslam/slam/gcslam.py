@@ -44,19 +44,38 @@ from torch import Tensor
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError, ShapeError, TorchSlamError
-from ..fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closures, optimize, optimize_batch
+from ..fastgo import (
+    FastGOConfig,
+    FastGOProblem,
+    PairStats,
+    accept_loop_closures,
+    optimize,
+    optimize_batch,
+)
 from ..features import ORBConfig
-from ..geometry import PinholeCamera, backproject_depth, project_points, se3_inverse, undistorted_rays
+from ..geometry import (
+    PinholeCamera,
+    backproject_depth,
+    project_points,
+    se3_inverse,
+    undistorted_rays,
+)
 from ..loop import MILDConfig, MILDDatabase
 from ..registration.dense import DenseConfig, prepare_dense_frame, register_dense_frames
-from ..registration.sparse import FrameFeatures, SparseConfig, frame_features, register_sparse, register_sparse_batch
-from .base import SystemOutput, empty_output
+from ..registration.sparse import (
+    FrameFeatures,
+    SparseConfig,
+    frame_features,
+    register_sparse,
+    register_sparse_batch,
+)
+from .base import SystemOutput, empty_output, resample_poses
 from .monitor import Monitor
 from .nislam import StepReport
 from .outputs import voxel_downsample
 from .registry import SystemSpec
 
-__all__ = ["GCSlam", "GCSlamConfig", "SPEC", "insert_keyframes", "track_frames"]
+__all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframes", "track_frames"]
 
 logger = logging.getLogger(__name__)
 
@@ -355,7 +374,7 @@ class _Worker:
                 continue
             try:
                 self.optimizer.insert(ev)
-            except BaseException as exc:  # reported to the tracking thread at the next call
+            except BaseException as exc:  # noqa: BLE001 - reported to the tracking thread at the next call
                 self.error = exc
 
     def submit(self, ev: _KeyframeEvent) -> None:
@@ -664,10 +683,7 @@ class GCSlam:
         """
         t_geom = torch.tensor(self.frame_geom_time, dtype=torch.float64)
         t_frame = torch.tensor(self.frame_time, dtype=torch.float64)
-        if len(t_geom) < 2 or torch.equal(t_geom, t_frame) or not bool((t_geom[1:] > t_geom[:-1]).all()):
-            return T_geom
-        T, ok = Trajectory(t_geom, T_geom).interpolate(t_frame, self.cfg.interpolation_max_gap)
-        return torch.where(ok[:, None, None], T, T_geom)
+        return resample_poses(t_geom, T_geom, t_frame, self.cfg.interpolation_max_gap)
 
     def _map(self, T_wk: Tensor) -> tuple[Tensor, Tensor]:
         pts = [k.map_points.cpu().double() @ T[:3, :3].T + T[:3, 3] for k, T in zip(self.keyframes, T_wk)]

@@ -29,10 +29,10 @@ from collections.abc import Iterator
 
 from ..data.frame import Frame, Sequence
 from ..errors import ConfigError
-from .base import RunResult, SystemOutput, empty_output
-from .monitor import Monitor
 from . import gcslam as _gcslam
+from .base import RunResult, SystemOutput, empty_output
 from .gcslam import GCSlam, GCSlamConfig
+from .monitor import Monitor
 from .nislam import NISlam, NISlamConfig, track_frames
 
 __all__ = ["CPU_BATCH_PIXELS", "default_max_batch", "run_lockstep"]

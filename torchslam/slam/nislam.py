@@ -72,7 +72,7 @@ from ..kcc import (
 )
 from ..loop import MILDConfig, MILDDatabase
 from ..optim import LMConfig
-from .base import SystemOutput
+from .base import SystemOutput, resample_poses
 from .monitor import Monitor
 from .registry import SystemSpec
 
@@ -749,10 +749,7 @@ class NISlam:
         """
         t_geom = torch.tensor(self.frame_geom_time, dtype=torch.float64)
         t_frame = torch.tensor(self.frame_time, dtype=torch.float64)
-        if len(t_geom) < 2 or torch.equal(t_geom, t_frame) or not bool((t_geom[1:] > t_geom[:-1]).all()):
-            return T_geom
-        T, ok = Trajectory(t_geom, T_geom).interpolate(t_frame, self.cfg.attitude_max_gap)
-        return torch.where(ok[:, None, None], T, T_geom)
+        return resample_poses(t_geom, T_geom, t_frame, self.cfg.attitude_max_gap)
 
     def _metrics(self) -> dict[str, Any]:
         psr = torch.tensor([p for p in self.psr if math.isfinite(p)], dtype=torch.float64)

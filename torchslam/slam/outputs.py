@@ -14,8 +14,9 @@ import json
 import logging
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from ..data.trajectory import Trajectory, write_tum_trajectory
 from ..environment import environment_info
 from .base import RunResult
 
-__all__ = ["write_run", "write_ply", "voxel_downsample", "METRIC_KEYS"]
+__all__ = ["METRIC_KEYS", "voxel_downsample", "write_ply", "write_run"]
 
 logger = logging.getLogger(__name__)
 
@@ -154,10 +155,10 @@ def write_run(
         "sequence": sequence.name,
         "frames": result.frames_total,
         "processed_frames": result.frames_processed,
-        "tracked_frames": int(len(o.frame_indices)),
+        "tracked_frames": len(o.frame_indices),
         "skipped_frames": result.frames_skipped,
         "skipped": [{"index": int(i), "reason": r} for i, r in result.skipped],
-        "keyframes": int(len(o.keyframe_indices)),
+        "keyframes": len(o.keyframe_indices),
         "fps_end_to_end": _finite(result.fps_end_to_end),
         "fps_compute": _finite(result.fps_compute),
         "wall_s": result.wall_s,

@@ -11,7 +11,8 @@ The work happens outside the compute timer, so frame rates are unaffected apart 
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -21,7 +22,7 @@ from ..errors import TorchSlamError
 from .base import SystemOutput
 from .monitor import Monitor
 
-__all__ = ["progress_callback", "log_final"]
+__all__ = ["log_final", "progress_callback"]
 
 logger = logging.getLogger(__name__)
 

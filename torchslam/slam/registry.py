@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import ConfigError
 
-__all__ = ["SystemSpec", "KNOWN_SYSTEMS", "available_systems", "get_system"]
+__all__ = ["KNOWN_SYSTEMS", "SystemSpec", "available_systems", "get_system"]
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,10 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import yaml
 
@@ -18,8 +19,8 @@ from ..data.tum import TUMSequence
 from ..errors import ConfigError
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
-from .progress import log_final, progress_callback
 from .outputs import write_run
+from .progress import log_final, progress_callback
 from .registry import get_system
 
 __all__ = ["DataConfig", "RunOptions", "load_sequence", "resolve_config", "run"]
@@ -103,7 +104,9 @@ def resolve_config(
             raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
         layers.append((str(path), dict(loaded or {})))
     if params is not None:
-        from ..learn.params import checkpoint_values  # lazy: torch.load and the learn package
+        from ..learn.params import (
+            checkpoint_values,  # lazy: torch.load and the learn package
+        )
 
         values = checkpoint_values(params, spec.config_cls, system)
         layers.append((str(params), _nest(values)))
