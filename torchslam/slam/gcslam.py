@@ -179,7 +179,11 @@ class _KeyframeEvent:
 
 
 class _Optimizer:
-    """Keyframe poses, pairs, the MILD database and FastGO: the optimisation thread's state."""
+    """Keyframe poses, pairs, the MILD database and FastGO: the optimisation thread's state.
+
+    Poses and pair statistics live on the CPU in float64 whatever device the front-end uses
+    (FastGO's cost does not grow with images, and float64 is the back-end's precision).
+    """
 
     def __init__(self, cfg: GCSlamConfig, monitor: Monitor) -> None:
         self.cfg = cfg
@@ -231,7 +235,7 @@ class _Optimizer:
         else:
             self.T_wk.append(self.T_wk[ev.reference] @ ev.T_ref_kf.to(torch.float64))
             self.pairs.append((ev.reference, ev.kf))
-            self.stats.append(ev.stats.to(dtype=torch.float64))
+            self.stats.append(ev.stats.to("cpu", torch.float64))
             self.pair_kind.append("odometry")
         self.features.append(ev.features)
         t0 = time.perf_counter()
@@ -266,7 +270,7 @@ class _Optimizer:
         for k, group in enumerate(trials):
             T, pairs, stats = self._problem()
             loop_pairs = torch.tensor([(candidates[b], kf) for b in group], dtype=torch.int64)
-            loop_stats = res.stats[torch.tensor(group)].to(dtype=torch.float64)
+            loop_stats = res.stats[torch.tensor(group, device=res.T_ij.device)].to("cpu", torch.float64)
             decision = accept_loop_closures(
                 T, pairs, stats, loop_pairs, loop_stats, fixed=0, threshold=float("inf"),
                 config=self._fastgo_config(cfg.loop_iterations),
@@ -551,7 +555,7 @@ class GCSlam:
                 self.counts["relocalized"] += 1
                 self.lost_in_row = 0
                 self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=recent[b].kf, T_ref=res.T_ij[b],
-                                   stats=res.stats[torch.tensor([b])], relocalized=True)
+                                   stats=res.stats[torch.tensor([b], device=res.T_ij.device)], relocalized=True)
                 return
         self._record_lost(frame)
         if self.lost_in_row > cfg.max_lost:
@@ -603,7 +607,7 @@ class GCSlam:
             _TrackKeyframe(kid, frame.index, feats, points[sample], pix, dense_frame, points[m].float(), colors)
         )
         ev = _KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
-                            None if stats is None else stats.to(dtype=torch.float64), feats, anchor)
+                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor)
         t_submit = time.perf_counter()
         self._worker.submit(ev)
         if not self._worker.threaded:
