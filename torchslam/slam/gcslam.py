@@ -270,7 +270,7 @@ class _Optimizer:
         for k, group in enumerate(trials):
             T, pairs, stats = self._problem()
             loop_pairs = torch.tensor([(candidates[b], kf) for b in group], dtype=torch.int64)
-            loop_stats = res.stats[torch.tensor(group, device=res.T_ij.device)].to("cpu", torch.float64)
+            loop_stats = res.stats[torch.tensor(group, device=res.stats.device)].to("cpu", torch.float64)
             decision = accept_loop_closures(
                 T, pairs, stats, loop_pairs, loop_stats, fixed=0, threshold=float("inf"),
                 config=self._fastgo_config(cfg.loop_iterations),
@@ -555,7 +555,7 @@ class GCSlam:
                 self.counts["relocalized"] += 1
                 self.lost_in_row = 0
                 self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=recent[b].kf, T_ref=res.T_ij[b],
-                                   stats=res.stats[torch.tensor([b], device=res.T_ij.device)], relocalized=True)
+                                   stats=res.stats[torch.tensor([b], device=res.stats.device)], relocalized=True)
                 return
         self._record_lost(frame)
         if self.lost_in_row > cfg.max_lost:
