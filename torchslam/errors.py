@@ -6,7 +6,7 @@ from collections.abc import MutableMapping
 
 import torch
 
-__all__ = ["TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "check_shape", "check_float"]
+__all__ = ["TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "check_shape", "check_float", "parse_choice"]
 
 
 class TorchSlamError(Exception):
@@ -80,3 +80,18 @@ def check_float(x: torch.Tensor, name: str) -> None:
     """Raise DTypeError unless ``x`` is float32 or float64."""
     if x.dtype not in (torch.float32, torch.float64):
         raise DTypeError(f"{name}: expected float32 or float64, got {x.dtype}")
+
+
+def parse_choice(cls, value, what: str):
+    """Return the member of enum ``cls`` named by ``value`` (a member or its value, any case).
+
+    Raises:
+        ConfigError: naming ``what``, the bad value and the valid ones.
+    """
+    if isinstance(value, cls):
+        return value
+    try:
+        return cls(str(value).lower())
+    except ValueError:
+        valid = ", ".join(m.value for m in cls)
+        raise ConfigError(f"{what}: unknown {value!r}; valid: {valid}") from None

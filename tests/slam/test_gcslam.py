@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchslam.config import config_from_dict, load_config
-from torchslam.data import Frame, Trajectory
+from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError

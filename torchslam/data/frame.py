@@ -38,6 +38,15 @@ class Frame:
     T_wc: Tensor | None = None
     depth_timestamp: float | None = None
 
+    @property
+    def geometry_time(self) -> float:
+        """When the frame's geometry was observed: the depth image's timestamp where recorded.
+
+        Both systems pose a frame at this instant (its 3-D points come from the depth image) and
+        re-sample the trajectory at the colour ``timestamp`` at the end.
+        """
+        return self.timestamp if self.depth_timestamp is None else float(self.depth_timestamp)
+
 
 @runtime_checkable
 class Sequence(Protocol):

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..errors import ConfigError, ShapeError, check_float, check_shape, parse_choice
 
 __all__ = [
     "BlockSparseMatrix",
@@ -60,13 +60,7 @@ class SolverMethod(enum.Enum):
     @classmethod
     def parse(cls, value: "SolverMethod | str") -> "SolverMethod":
         """Return the member for ``value``; a bad name lists the valid ones."""
-        if isinstance(value, cls):
-            return value
-        try:
-            return cls(str(value).lower())
-        except ValueError:
-            valid = ", ".join(m.value for m in cls)
-            raise ConfigError(f"solver: unknown method {value!r}; valid: {valid}") from None
+        return parse_choice(cls, value, "solver method")
 
 
 @dataclass(frozen=True)

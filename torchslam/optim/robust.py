@@ -18,7 +18,7 @@ import enum
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_float
+from ..errors import ConfigError, check_float, parse_choice
 
 __all__ = ["RobustKernel", "robust_weight", "robust_cost"]
 
@@ -37,13 +37,7 @@ class RobustKernel(enum.Enum):
         """Return the member for ``value`` (``None`` means ``L2``); a bad name lists the valid ones."""
         if value is None:
             return cls.L2
-        if isinstance(value, cls):
-            return value
-        try:
-            return cls(str(value).lower())
-        except ValueError:
-            valid = ", ".join(m.value for m in cls)
-            raise ConfigError(f"robust kernel: unknown {value!r}; valid: {valid}") from None
+        return parse_choice(cls, value, "robust kernel")
 
 
 def robust_weight(r: Tensor, kernel: RobustKernel | str, scale: float | Tensor) -> Tensor:

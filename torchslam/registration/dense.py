@@ -79,7 +79,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..errors import ConfigError, ShapeError, check_float, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..geometry import (
     PinholeCamera,
@@ -130,13 +130,7 @@ class DenseRobust(enum.Enum):
     @classmethod
     def parse(cls, value: DenseRobust | str) -> DenseRobust:
         """Return the member for ``value``; a bad name lists the valid ones."""
-        if isinstance(value, cls):
-            return value
-        try:
-            return cls(str(value).lower())
-        except ValueError:
-            valid = ", ".join(m.value for m in cls)
-            raise ConfigError(f"robust: unknown {value!r}; valid: {valid}") from None
+        return parse_choice(cls, value, "robust")
 
 
 @dataclass(frozen=True)

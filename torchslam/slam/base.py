@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..data.frame import Frame, Sequence
 
-__all__ = ["RunResult", "SlamSystem", "SystemOutput", "empty_output", "resample_poses", "run_sequence"]
+__all__ = ["RunResult", "SlamSystem", "StepReport", "SystemOutput", "empty_output", "frame_poses", "resample_poses", "run_sequence"]
 
 logger = logging.getLogger(__name__)
 
@@ -179,3 +179,33 @@ def resample_poses(t_from: Tensor, T_from: Tensor, t_to: Tensor, max_gap: float)
         return T_from
     T, ok = Trajectory(t_from, T_from).interpolate(t_to, max_gap)
     return torch.where(ok[:, None, None], T, T_from)
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """What a lockstep ``track_frames`` step did for each system (``nislam`` and ``gcslam``).
+
+    Attributes:
+        errors: per system, the exception one of its phases raised (its state is then undefined
+            and it should be dropped), or None.
+        compute_s: per system, seconds of compute attributed to it: its own phases plus an equal
+            share of every batched call it took part in.
+    """
+
+    errors: list[Exception | None]
+    compute_s: list[float]
+
+
+def frame_poses(T_wk: Tensor, frame_kf: list[int], frame_T_kf: list[Tensor]) -> Tensor:
+    """Pose every frame from its keyframe: ``T_wc = T_wk[kf] @ T_kf_frame``, batched.
+
+    Args:
+        T_wk: (K, 4, 4) float64 keyframe poses.
+        frame_kf: N keyframe indices, one per frame.
+        frame_T_kf: N (4, 4) poses of the frames relative to their keyframes.
+
+    Returns:
+        (N, 4, 4) float64 camera-to-world poses (on ``T_wk``'s device).
+    """
+    kf_of = torch.tensor(frame_kf, dtype=torch.int64, device=T_wk.device)
+    return T_wk[kf_of] @ torch.stack(frame_T_kf).to(T_wk)

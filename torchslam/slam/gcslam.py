@@ -31,6 +31,7 @@ own until a loop closure reconnects it.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import queue
 import threading
@@ -69,9 +70,8 @@ from ..registration.sparse import (
     register_sparse,
     register_sparse_batch,
 )
-from .base import SystemOutput, empty_output, resample_poses
+from .base import StepReport, SystemOutput, empty_output, frame_poses, resample_poses
 from .monitor import Monitor
-from .nislam import StepReport
 from .outputs import voxel_downsample
 from .registry import SystemSpec
 
@@ -363,8 +363,7 @@ class _Worker:
         self.deferred = deferred
         self.pending: list[_KeyframeEvent] = []
         self.error: BaseException | None = None
-        threaded = self.threaded
-        if threaded:
+        if self.threaded:
             self.queue: queue.Queue = queue.Queue()
             self.thread = threading.Thread(target=self._loop, name="torchslam-gcslam-optimizer", daemon=True)
             self.thread.start()
@@ -413,11 +412,6 @@ class _TrackKeyframe:
     dense: Any | None  # the keyframe's dense pyramid (dense front-end)
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
-
-
-def _geometry_time(frame: Frame) -> float:
-    """The instant of the frame's depth image (its 3-D points), or its timestamp if not recorded."""
-    return frame.timestamp if frame.depth_timestamp is None else float(frame.depth_timestamp)
 
 
 class GCSlam:
@@ -568,7 +562,7 @@ class GCSlam:
             return  # nothing to hold yet: the frame has no pose
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(_geometry_time(frame))
+        self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(self.frame_kf[-1])
         self.frame_T_kf.append(self.frame_T_kf[-1])
         self.frame_lost.append(True)
@@ -576,7 +570,7 @@ class GCSlam:
     def _record(self, frame: Frame, kf: int, T_kf: Tensor) -> None:
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(_geometry_time(frame))
+        self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(kf)
         T = T_kf.to(torch.float64)
         self.frame_T_kf.append(T)
@@ -624,11 +618,12 @@ class GCSlam:
         the depth instants (not re-sampled to colour stamps until ``finish``).
         """
         T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
-        keep = [k for k, kf in enumerate(self.frame_kf) if kf < len(T_wk)]
-        if not keep:
+        # Keyframe ids never decrease along the frames, so the posed frames are a prefix.
+        n = bisect.bisect_left(self.frame_kf, len(T_wk))
+        if n == 0:
             return None
-        T = torch.stack([T_wk[self.frame_kf[k]] @ self.frame_T_kf[k].cpu() for k in keep])
-        return Trajectory(torch.tensor([self.frame_geom_time[k] for k in keep], dtype=torch.float64), T)
+        T = frame_poses(torch.stack(T_wk), self.frame_kf[:n], self.frame_T_kf[:n])
+        return Trajectory(torch.tensor(self.frame_geom_time[:n], dtype=torch.float64), T)
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops and lost frames so far, for TensorBoard."""
@@ -658,8 +653,7 @@ class GCSlam:
             out.metrics = self._metrics()
             return out
         T_wk = torch.stack(opt.T_wk)
-        kf_of = torch.tensor(self.frame_kf, dtype=torch.int64)
-        T_wc = self._at_frame_times(T_wk[kf_of] @ torch.stack([T.cpu() for T in self.frame_T_kf]))
+        T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
         points, colors = self._map(T_wk)  # clouds belong to the depth instants: optimised poses as they are
         # keyframes.txt is stamped with the keyframes' colour timestamps: their re-sampled poses.
         position = {f: p for p, f in enumerate(self.frame_index)}

@@ -72,8 +72,9 @@ from ..kcc import (
 )
 from ..loop import MILDConfig, MILDDatabase
 from ..optim import LMConfig
-from .base import SystemOutput, resample_poses
+from .base import StepReport, SystemOutput, frame_poses, resample_poses
 from .monitor import Monitor
+from .outputs import voxel_downsample
 from .registry import SystemSpec
 
 __all__ = ["SPEC", "LoopConfig", "NISlam", "NISlamConfig", "StepReport", "TrackResult", "track_frames", "track_step"]
@@ -294,15 +295,6 @@ class _Work:
     p_pred: Tensor | None = None  # (3,) constant-velocity prediction, or None
 
 
-def _geometry_time(frame: Frame) -> float:
-    """When the frame's geometry was observed: the depth image's timestamp where it is recorded.
-
-    The point cloud, hence the translation the correlator measures, comes from the depth image,
-    so the attitude that rotates it must be sampled at the same instant.
-    """
-    return frame.timestamp if frame.depth_timestamp is None else float(frame.depth_timestamp)
-
-
 def _nearest_axis(v: Tensor) -> Tensor:
     k = int(v.abs().argmax())
     out = torch.zeros(3, dtype=torch.float64)
@@ -434,7 +426,7 @@ class NISlam:
         """
         cfg = self.cfg
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
-        times = torch.tensor([_geometry_time(frame), frame.timestamp], dtype=torch.float64)
+        times = torch.tensor([frame.geometry_time, frame.timestamp], dtype=torch.float64)
         R_att, ok = self.attitude.at(times, cfg.attitude_max_gap)
         if not bool(ok[0]):
             self.untracked["attitude_gap"] += 1
@@ -566,7 +558,7 @@ class NISlam:
         kf = self.keyframes[-1]
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(_geometry_time(frame))
+        self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(len(self.keyframes) - 1)
         self.frame_T_kf.append(se3_inverse(kf.T_wk) @ T_wi)
 
@@ -697,8 +689,7 @@ class NISlam:
         if not self.frame_index:
             return None
         T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
-        kf_of = torch.tensor(self.frame_kf, dtype=torch.int64)
-        T = T_wk[kf_of] @ torch.stack(self.frame_T_kf)
+        T = frame_poses(T_wk, self.frame_kf, self.frame_T_kf)
         return Trajectory(torch.tensor(self.frame_geom_time, dtype=torch.float64), T)
 
     def progress_counters(self) -> dict[str, float]:
@@ -722,8 +713,7 @@ class NISlam:
             out.metrics = self._metrics()
             return out
         T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
-        kf_of = torch.tensor(self.frame_kf, dtype=torch.int64)
-        T_wc = self._at_frame_times(T_wk[kf_of] @ torch.stack(self.frame_T_kf))
+        T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
         points, colors = self._map_points(T_wk)
         return SystemOutput(
             frame_indices=torch.tensor(self.frame_index, dtype=torch.int64),
@@ -740,7 +730,7 @@ class NISlam:
     def _at_frame_times(self, T_geom: Tensor) -> Tensor:
         """Re-sample the trajectory from the depth instants to the frames' (colour) timestamps.
 
-        Each tracked pose is the camera's at the depth image's instant (``_geometry_time``); the
+        Each tracked pose is the camera's at the depth image's instant (``Frame.geometry_time``); the
         trajectory is reported at the frame timestamps, so it is interpolated there (linear in
         translation, SLERP in rotation) between the neighbouring depth instants. On TUM fr1 the
         two alternate ~15 ms before and after the colour stamp, which at 0.4 m/s is ±6 mm.
@@ -780,34 +770,11 @@ class NISlam:
             xyz = torch.stack([(cols[m] + 0.5 - W / 2) * r, (rows[m] + 0.5 - H / 2) * r, kf.map.depth[0].cpu()[m].double()], -1)
             pts.append(xyz @ T[:3, :3].T + T[:3, 3])
             cols_out.append(kf.map.grey[0].cpu()[m].double())
-        P = torch.cat(pts)
-        G = torch.cat(cols_out)
-        if self.cfg.map_voxel > 0 and len(P):
-            key = torch.floor(P / self.cfg.map_voxel).to(torch.int64)
-            _, inv = torch.unique(key, dim=0, return_inverse=True)
-            n = int(inv.max()) + 1
-            cnt = torch.zeros(n, dtype=torch.float64).index_add_(0, inv, torch.ones_like(G))
-            P = torch.zeros(n, 3, dtype=torch.float64).index_add_(0, inv, P) / cnt[:, None]
-            G = torch.zeros(n, dtype=torch.float64).index_add_(0, inv, G) / cnt
-        return P.float(), G.float()[:, None].expand(-1, 3).contiguous()
+        grey = torch.cat(cols_out)
+        return voxel_downsample(torch.cat(pts), grey[:, None].expand(-1, 3), self.cfg.map_voxel)
 
 
 # ---------------------------------------------------------------------- many sequences in lockstep
-
-
-@dataclass(frozen=True)
-class StepReport:
-    """What ``track_frames`` did for each system.
-
-    Attributes:
-        errors: per system, the exception one of its phases raised (its state is then undefined
-            and it should be dropped), or None.
-        compute_s: per system, seconds of compute attributed to it: its own phases plus an equal
-            share of every batched call it took part in.
-    """
-
-    errors: list[Exception | None]
-    compute_s: list[float]
 
 
 def track_frames(systems: list[NISlam], frames: list[Frame], max_batch: int | None = None) -> StepReport:
