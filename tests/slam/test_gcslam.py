@@ -197,3 +197,25 @@ def test_optimiser_failure_is_reported_not_lost(monkeypatch, threaded):
     monkeypatch.setattr(gc._Optimizer, "_begin", begin)
     with pytest.raises((RuntimeError, gc.TorchSlamError), match="planted optimiser failure"):
         run_sequence(GCSlam(GCSlamConfig(threaded=threaded)), seq)
+
+
+def test_keyframe_displacement_is_zero_at_the_keyframe_pose_with_lens_distortion():
+    import dataclasses
+
+    base = generate_sequence(SyntheticConfig(frames=2, trajectory="translate", seed=8, **SMALL))
+    cam = dataclasses.replace(base.camera, distortion=(0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
+
+    class Distorted(_Frames):
+        pass
+
+    seq = Distorted(base, [base[0], base[1]])
+    seq.camera = cam
+    system = GCSlam(GCSlamConfig(threaded=False))
+    system.start(seq)
+    system.track(seq[0])
+    kf = system.keyframes[0]
+    assert system._displacement(kf, torch.eye(4, dtype=torch.float64)) < 1e-9
+    # A pure 1-degree yaw moves the centre points by about f * tan(1 deg).
+    T = se3_exp(torch.tensor([0, 0, 0, 0, 0.0174533, 0], dtype=torch.float64))
+    moved = system._displacement(kf, T)
+    assert 0.8 * cam.fx * 0.01745 < moved < 1.6 * cam.fx * 0.01745
