@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam.errors import DTypeError, ShapeError
+from torchslam.errors import ConfigError, DTypeError, ShapeError
 from torchslam.kcc import (
     KCCConfig,
     KeyframeMap,
@@ -126,6 +126,30 @@ def test_depth_translation_beyond_threshold_reports_empty_or_uses_median(kf):
     for median in (False, True):
         e = depth_translation(empty, kf, s, median_center=median)
         assert e.count.item() == 0 and e.t_z.item() == 0.0 and math.isinf(e.variance.item())
+
+
+def test_depth_translation_median_ignores_one_sided_outliers(kf):
+    """Differences that pass the depth test but are one-sided (depth edges) bias the mean, not the median."""
+    s = torch.tensor([[2, -3]])
+    frame = _moved(kf, s, dz=0.02)
+    # A quarter of the pixels 6 cm too far: inside T_d = 10 cm of the true 2 cm, so they match.
+    edge = torch.rand(frame.depth.shape, generator=_gen(3), dtype=torch.float64) < 0.25
+    depth = torch.where(frame.valid & edge, frame.depth + 0.06, frame.depth)
+    noisy = OrthoImages(frame.grey, depth, frame.valid, frame.resolution, frame.center)
+    mean = depth_translation(noisy, kf, s, median_center=True)
+    median = depth_translation(noisy, kf, s, median_center=True, statistic="median")
+    assert torch.equal(mean.matched, median.matched) and torch.equal(mean.count, median.count)
+    assert mean.t_z.item() == pytest.approx(0.02 + 0.06 * 0.25, abs=0.003)  # biased by ~1.5 cm
+    assert median.t_z.item() == pytest.approx(0.02, abs=1e-12)
+    # Batched (nanmedian path) equals per item (kthvalue path).
+    two = OrthoImages(*(torch.cat([getattr(noisy, f)] * 2) for f in ("grey", "depth", "valid", "resolution")),
+                      torch.cat([noisy.center] * 2))
+    both = depth_translation(two, _expand(kf, 2), s.expand(2, 2), median_center=True, statistic="median")
+    assert torch.equal(both.t_z, median.t_z.expand(2))
+    with pytest.raises(ConfigError, match="statistic"):
+        depth_translation(noisy, kf, s, statistic="mode")
+    with pytest.raises(ConfigError, match="depth_statistic"):
+        KCCConfig(depth_statistic="trimmed")
 
 
 def test_depth_translation_batched_equals_per_item(kf):

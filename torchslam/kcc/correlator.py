@@ -139,6 +139,8 @@ class KCCConfig:
             ``kcc_features``.
         depth_median_center: select well-matched depths around their median instead of around
             0 (beyond the paper; see ``depth_translation``).
+        depth_statistic: ``t_z`` as the ``"mean"`` (the paper) or ``"median"`` of the
+            well-matched depth differences (``depth_translation``).
         soft_argmax: use the differentiable soft arg-max instead of the hard peak for the shift.
         temperature: soft arg-max temperature, in units of the correlation output (≈1 at a
             perfect match).
@@ -161,6 +163,7 @@ class KCCConfig:
     channel_norm: ChannelNorm = ChannelNorm.STANDARDIZE
     fill_holes: int = 3
     depth_median_center: bool = False
+    depth_statistic: str = "mean"
     soft_argmax: bool = False
     temperature: float = 0.02
 
@@ -171,6 +174,8 @@ class KCCConfig:
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
                 raise ConfigError(f"{key}: expected a positive number, got {value!r}")
+        if self.depth_statistic not in ("mean", "median"):
+            raise ConfigError(f"depth_statistic: expected 'mean' or 'median', got {self.depth_statistic!r}")
         if not self.T_M > self.T_K:
             raise ConfigError(f"T_M: expected T_M > T_K (the paper's condition), got T_M={self.T_M}, T_K={self.T_K}")
         for key in ("ortho_height", "ortho_width", "sample_step", "subpixel_iterations"):
