@@ -135,6 +135,10 @@ class NISlamConfig:
         sim_seed: seed of the simulated IMU noise.
         attitude_max_gap: a frame whose attitude would be interpolated across a larger gap of
             the stream is not tracked (counted in ``metrics.json``), seconds.
+        attitude_time_offset: the attitude of an image stamped ``t`` is the stream's sample at
+            ``t + attitude_time_offset``, seconds: the two clocks' offset, which
+            ``torchslam calibrate-time`` estimates from the images and the stream's rotations
+            (``slam.time_offset``). Trajectories keep the image stamps.
         pixel_stride: use every n-th pixel in x and y of the depth image (1 = all; 2 quarters
             the projection cost).
         min_valid_points: frames with fewer valid depth points are not tracked.
@@ -153,7 +157,8 @@ class NISlamConfig:
         kcc: correlator, keyframe and fusion settings. The paper's values except
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
             optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, and
-            on TUM fr1/xyz that broke tracking (ATE 12.9 cm against 1.8 cm with it on).
+            on TUM fr1/xyz that broke tracking (ATE 12.9 cm against 1.8 cm with it on); and
+            ``depth_statistic``, "median" here (``depth_translation``).
         loop: loop closure settings.
         map_voxel: voxel size of ``map.ply``, metres.
         monitor_images_every: log the correlation response and keyframe image every n keyframes.
@@ -165,12 +170,13 @@ class NISlamConfig:
     sim_bias_walk: float = ImuNoise.gyro_bias_walk
     sim_seed: int = 0
     attitude_max_gap: float = 0.1
+    attitude_time_offset: float = 0.0
     pixel_stride: int = 1
     min_valid_points: int = 1000
     max_jump_m: float = 0.1
     grey_at_depth_time: bool = True
     undistort: bool = True
-    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True))
+    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01
     monitor_images_every: int = 10
@@ -246,7 +252,7 @@ def track_step(
         x, kf_filter, cfg.sigma, resolution, cfg.subpixel, cfg.subpixel_smoothing, cfg.subpixel_iterations,
         cfg.psr_window, temperature,
     )
-    dz = depth_translation(fr, kf_map, pred.index, cfg.T_c, cfg.T_d, cfg.depth_median_center)
+    dz = depth_translation(fr, kf_map, pred.index, cfg.T_c, cfg.T_d, cfg.depth_median_center, cfg.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
     t = torch.cat([pred.t_xy, dz.t_z[:, None]], dim=-1)
     var = torch.stack([pred.variance, pred.variance, dz.variance], dim=-1)
@@ -427,7 +433,7 @@ class NISlam:
         cfg = self.cfg
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
         times = torch.tensor([frame.geometry_time, frame.timestamp], dtype=torch.float64)
-        R_att, ok = self.attitude.at(times, cfg.attitude_max_gap)
+        R_att, ok = self.attitude.at(times + cfg.attitude_time_offset, cfg.attitude_max_gap)
         if not bool(ok[0]):
             self.untracked["attitude_gap"] += 1
             return None
