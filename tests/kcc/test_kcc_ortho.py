@@ -340,3 +340,41 @@ def test_rgbd_to_points_along_undistorted_rays_and_distorted_sample_grey():
     assert not torch.allclose(grey[ok], plain[ok], atol=1e-3)  # the lens matters here
     with pytest.raises(ShapeError, match="rays"):
         rgbd_to_points(rgb, depth, intr, rays=rays[:-1])
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_sample_grey_rotated_equals_per_point_sampling_to_hundredths_of_a_pixel(distorted):
+    """The rotation-only warp, interpolated between nodes, against the per-point projection."""
+    from scipy.spatial.transform import Rotation
+
+    from torchslam.geometry import PinholeCamera, undistorted_rays
+    from torchslam.kcc import sample_grey_rotated
+
+    H, W = 120, 160
+    dist = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633) if distorted else None
+    cam = PinholeCamera(129.3, 129.1, 79.6, 63.8, W, H, dist)  # TUM freiburg1 at a quarter size
+    intr = cam.as_tensor(torch.float64)[None].expand(2, 4)
+    rays = undistorted_rays(cam) if distorted else None
+    # Grey ramps: a sampled value is a position, grey = (u + 2 v) / 1000.
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    rgb = ((u + 2 * v) / 1000).expand(2, 3, H, W).contiguous()
+    depth = (1.0 + torch.rand(2, 1, H, W, generator=_gen(7), dtype=torch.float64))
+    points, grey0, valid = rgbd_to_points(rgb, depth, intr, rays=rays)
+    R = torch.from_numpy(Rotation.from_rotvec([[0.004, -0.006, 0.002], [-0.015, 0.01, 0.008]]).as_matrix())
+    exact, ok_e = sample_grey(rgb, points, valid, R, intr, grey_image=grey0, distortion=dist)
+    # Nodes 2 px apart at this quarter size: the default 8 px at 640 x 480.
+    fast, ok_f = sample_grey_rotated(rgb, valid, R, intr, rays=rays, grey_image=grey0, distortion=dist, step=2)
+    both = ok_e & ok_f
+    assert int((ok_e != ok_f).sum()) <= 2  # only points on the image border can differ
+    # |d grey| = |du + 2 dv| / 1000 bounds the position error in pixels (up to the factor 2).
+    err = (exact - fast).abs() * 1000
+    assert float(err[0][both[0]].max()) < 0.01  # a 0.4 degree rotation
+    assert float(err[1][both[1]].max()) < 0.025  # 1.1 degrees
+    assert bool((fast[~ok_f] == 0).all())
+    # No rotation: every pixel keeps its own grey value.
+    eye = torch.eye(3, dtype=torch.float64).expand(2, 3, 3)
+    same, ok_same = sample_grey_rotated(rgb, valid, eye, intr, rays=rays, grey_image=grey0, distortion=dist)
+    # (to 0.001 px through the lens: the node rays are interpolated in the per-pixel ray image)
+    torch.testing.assert_close(same[valid], grey0[valid], atol=1e-6 if distorted else 1e-12, rtol=0)
+    with pytest.raises(ShapeError, match="behind the camera"):
+        sample_grey_rotated(rgb, valid, torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)).expand(2, 3, 3), intr)

@@ -34,7 +34,15 @@ from .correlator import (
     spectral_energy,
 )
 from .fusion import DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
-from .ortho import OrthoImages, choose_resolution, grey_from_rgb, orthographic_project, rgbd_to_points, sample_grey
+from .ortho import (
+    OrthoImages,
+    choose_resolution,
+    grey_from_rgb,
+    orthographic_project,
+    rgbd_to_points,
+    sample_grey,
+    sample_grey_rotated,
+)
 
 __all__ = [
     "ChannelNorm",
@@ -63,6 +71,7 @@ __all__ = [
     "peak_to_sidelobe",
     "rgbd_to_points",
     "sample_grey",
+    "sample_grey_rotated",
     "shift_image",
     "shift_variance",
     "soft_argmax",

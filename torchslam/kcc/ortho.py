@@ -36,6 +36,7 @@ __all__ = [
     "orthographic_project",
     "rgbd_to_points",
     "sample_grey",
+    "sample_grey_rotated",
 ]
 
 # ITU-R BT.601 luma weights: the usual grey conversion for 8-bit colour cameras.
@@ -215,6 +216,96 @@ def sample_grey(
     grey = F.grid_sample(grey_img, grid.to(grey_img.dtype), mode="bilinear", padding_mode="border", align_corners=False)
     ok = valid & inside
     return where(ok, grey.flatten(1).to(points.dtype), 0.0), ok
+
+
+def sample_grey_rotated(
+    rgb: Tensor,
+    valid: Tensor,
+    rotation: Tensor,
+    intrinsics: Tensor,
+    rays: Tensor | None = None,
+    grey_image: Tensor | None = None,
+    distortion: tuple[float, ...] | None = None,
+    step: int = 8,
+) -> tuple[Tensor, Tensor]:
+    """``sample_grey`` for a pure rotation, without the points: one smooth warp per image.
+
+    A rotation moves every point of a pixel's ray to the same place in the other image, so the
+    colour pixel of depth pixel ``u`` does not depend on the depth: it is the projection (through
+    the lens) of ``R ray(u)``. That warp is computed exactly on a lattice of nodes about ``step``
+    pixels apart (spanning the image corners) and interpolated bilinearly in between; the affine
+    part of the warp (the identity, and every pinhole warp's first order) is reproduced exactly
+    and the rest is smooth: with the TUM fr1 lens at 640 x 480 and the default step the sampling
+    positions differ from ``sample_grey``'s by at most 0.008 px for a 0.4 degree rotation and
+    0.02 px for 1.1 degrees (tested at the equivalent quarter size), at a third of the cost on a
+    CPU core (2.0 against 4-6 ms per frame: one rotation per node, no per-point distortion).
+
+    Args:
+        rgb: (B, 3, H, W) colour in [0, 1].
+        valid: (B, H*W) bool validity of the depth pixels.
+        rotation: (B, 3, 3) rotation from the depth camera's frame into the colour camera's.
+        intrinsics: (B, 4) or (4,) ``(fx, fy, cx, cy)``, pixels.
+        rays: (H*W, 2) normalised rays of the pixels (``geometry.undistorted_rays``); ``None``:
+            the pinhole rays of ``intrinsics``.
+        grey_image: (B, H*W) ``grey_from_rgb(rgb)`` if the caller has it.
+        distortion: lens distortion applied to the rotated rays (``sample_grey``).
+        step: approximate node spacing, pixels (>= 1).
+
+    Returns:
+        As ``sample_grey``: (B, H*W) grey (0 where not valid) and (B, H*W) bool validity.
+    """
+    dims: dict[str, int] = {}
+    check_shape(rgb, "B 3 H W", "rgb", dims)
+    check_float(rgb, "rgb")
+    B, _, H, W = rgb.shape
+    check_shape(valid, f"{B} {H * W}", "valid")
+    check_shape(rotation, "B 3 3", "rotation", dims)
+    check_float(rotation, "rotation")
+    if not (isinstance(step, int) and step >= 1):
+        raise ConfigError(f"step: expected a positive integer, got {step!r}")
+    dtype, dev = rgb.dtype, rgb.device
+    intr = intrinsics.to(dtype)
+    if intr.dim() == 1:
+        intr = intr[None].expand(B, 4)
+    check_shape(intr, "B 4", "intrinsics", dims)
+    hc, wc = max(2, -(-(H - 1) // step) + 1), max(2, -(-(W - 1) // step) + 1)
+    vn = torch.linspace(0, H - 1, hc, dtype=dtype, device=dev)
+    un = torch.linspace(0, W - 1, wc, dtype=dtype, device=dev)
+    if rays is None:
+        rx = (un[None, None, :] - intr[:, 2, None, None]) / intr[:, 0, None, None]  # (B, 1, wc)
+        ry = (vn[None, :, None] - intr[:, 3, None, None]) / intr[:, 1, None, None]  # (B, hc, 1)
+        rx, ry = rx.expand(B, hc, wc), ry.expand(B, hc, wc)
+    else:
+        check_shape(rays, f"{H * W} 2", "rays")
+        check_float(rays, "rays")
+        # Rays at the (fractional) node pixels, bilinear in the per-pixel ray image.
+        img = rays.to(dtype).T.reshape(1, 2, H, W)
+        gv, gu = torch.meshgrid(2 * vn / max(H - 1, 1) - 1, 2 * un / max(W - 1, 1) - 1, indexing="ij")
+        node = F.grid_sample(img, torch.stack([gu, gv], dim=-1)[None], mode="bilinear", align_corners=True)[0]
+        rx, ry = node[0].expand(B, hc, wc), node[1].expand(B, hc, wc)
+    R = rotation.to(dtype)
+    X = R[:, 0, 0, None, None] * rx + R[:, 0, 1, None, None] * ry + R[:, 0, 2, None, None]
+    Y = R[:, 1, 0, None, None] * rx + R[:, 1, 1, None, None] * ry + R[:, 1, 2, None, None]
+    Z = R[:, 2, 0, None, None] * rx + R[:, 2, 1, None, None] * ry + R[:, 2, 2, None, None]
+    front = bool((Z > 0).all())
+    if not front:
+        raise ShapeError("rotation: turns part of the image behind the camera; use sample_grey with the points")
+    x, y = X / Z, Y / Z
+    if distortion is not None and any(c != 0.0 for c in distortion):
+        x, y = distort_planes(x, y, distortion)
+    gx = x * (2 * intr[:, 0, None, None] / W) + ((2 * intr[:, 2, None, None] + 1) / W - 1)
+    gy = y * (2 * intr[:, 1, None, None] / H) + ((2 * intr[:, 3, None, None] + 1) / H - 1)
+    grid = F.interpolate(torch.stack([gx, gy], dim=1), size=(H, W), mode="bilinear", align_corners=True)  # (B, 2, H, W)
+    inside = ((grid[:, 0].abs() <= 1) & (grid[:, 1].abs() <= 1)).flatten(1)
+    if grey_image is None:
+        grey_image = grey_from_rgb(rgb)
+    else:
+        check_shape(grey_image, f"{B} {H * W}", "grey_image")
+        check_float(grey_image, "grey_image")
+    grey_img = grey_image.to(dtype).view(B, 1, H, W)
+    grey = F.grid_sample(grey_img, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=False)
+    ok = valid & inside
+    return where(ok, grey.flatten(1), 0.0), ok
 
 
 # The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come

@@ -69,6 +69,7 @@ from ..kcc import (
     orthographic_project,
     rgbd_to_points,
     sample_grey,
+    sample_grey_rotated,
 )
 from ..loop import MILDConfig, MILDDatabase
 from ..optim import LMConfig
@@ -919,11 +920,10 @@ class _Step:
             # depth camera -> colour camera, from the attitude stream at the two instants
             R_cd = torch.stack([works[k].R_att[1].T @ works[k].R_att[0] for k in need]).to(points.dtype)
             if len(need) == len(items):
-                grey, valid = sample_grey(rgb, points, valid, R_cd, intrinsics, grey_image=grey, distortion=first.distortion)
+                grey, valid = _grey_at_depth_time(rgb, points, valid, R_cd, intrinsics, grey, first)
             else:
                 idx = torch.tensor(need, device=points.device)
-                g, v = sample_grey(rgb[idx], points[idx], valid[idx], R_cd, intrinsics[idx], grey_image=grey[idx],
-                                   distortion=first.distortion)
+                g, v = _grey_at_depth_time(rgb[idx], points[idx], valid[idx], R_cd, intrinsics[idx], grey[idx], first)
                 grey, valid = grey.index_copy(0, idx, g), valid.index_copy(0, idx, v)
         counts = valid.sum(dim=1).tolist()
         for k, w in enumerate(works):
@@ -953,6 +953,16 @@ class _Step:
             kf = systems[i].keyframes[-1]
             kf.map, kf.filter = _row(kf_map, k), _row(kf_filter, k)
             self.results[i] = _row(res, k)
+
+
+def _grey_at_depth_time(rgb, points, valid, R_cd, intrinsics, grey, system: NISlam) -> tuple[Tensor, Tensor]:
+    """Grey of each depth pixel seen at the colour instant: a rotation-only warp per image
+    (``sample_grey_rotated``, ~3x cheaper than projecting every point); the per-point
+    ``sample_grey`` where a rotation would turn part of the image behind the camera."""
+    try:
+        return sample_grey_rotated(rgb, valid, R_cd, intrinsics, rays=system.rays, grey_image=grey, distortion=system.distortion)
+    except ShapeError:
+        return sample_grey(rgb, points, valid, R_cd, intrinsics, grey_image=grey, distortion=system.distortion)
 
 
 def _groups(items: list[int], key) -> list[list[int]]:
