@@ -24,40 +24,60 @@ from torchslam.environment import environment_info
 from torchslam.eval import ate
 from torchslam.kcc import choose_resolution, kcc_features, kcc_train, keyframe_map, orthographic_project, rgbd_to_points
 from torchslam.slam import run_sequence
-from torchslam.slam.nislam import NISlam, NISlamConfig, track_step
+from torchslam.slam.nislam import NISlam, NISlamConfig, attitude_stream, track_step
+from torchslam.slam.time_offset import estimate_attitude_time_offset
 
 PAPER_ATE_M = {"tum_fr1_xyz": 0.011}  # NI-SLAM Table 1 (ground-truth attitude on TUM)
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def accuracy(data_root: Path, quick: bool) -> list[dict]:
+SETTINGS = {
+    "default": {},
+    # the attitude stream sampled at image stamp + the offset estimated from the images first
+    "time-offset": {},
+    "pixel_stride=2": {"pixel_stride": 2},
+}
+
+
+def accuracy(data_root: Path, quick: bool, settings: list[str]) -> list[dict]:
     rows = []
     cases = []
     for name in ("tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs"):
         if (data_root / name / "rgb.txt").is_file():
             for att in ("groundtruth", "simulated"):
-                cases.append((name, att))
-    cases += [("synthetic-orbit", "imu"), ("synthetic-translate", "imu"), ("synthetic-loop", "imu")]
-    for name, att in cases:
+                cases += [(name, att, st) for st in settings]
+    for kind in ("orbit", "translate", "loop"):
+        cases += [(f"synthetic-{kind}", "imu", st) for st in settings if st != "time-offset"]
+    for name, att, setting in cases:
         if name.startswith("synthetic"):
             kind = name.split("-", 1)[1]
             seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind))
         else:
             seq = TUMSequence(data_root / name, prefetch=2, end=40 if quick else None)
-        cfg = config_from_dict(NISlamConfig, {"attitude": att})
+        values = {"attitude": att, **SETTINGS[setting]}
+        offset = None
+        if setting == "time-offset":
+            stream = attitude_stream(seq, config_from_dict(NISlamConfig, values))
+            offset = estimate_attitude_time_offset(seq, stream, max_pairs=20 if quick else 60).offset
+            values["attitude_time_offset"] = offset
+        cfg = config_from_dict(NISlamConfig, values)
         t0 = time.perf_counter()
         res = run_sequence(NISlam(cfg), seq)
         wall = time.perf_counter() - t0
         out = res.output
         a = ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
         rows.append({
-            "sequence": name, "attitude": att, "frames": len(seq), "tracked": len(out.T_wc),
+            "sequence": name, "attitude": att, "setting": setting, "attitude_time_offset_s": offset,
+            "frames": len(seq), "tracked": len(out.T_wc),
             "keyframes": len(out.keyframe_indices), "loops_accepted": out.metrics["loops"]["accepted"],
-            "ate_rmse_m": a.stats["rmse"], "paper_ate_rmse_m": PAPER_ATE_M.get(name) if att == "groundtruth" else None,
+            "ate_rmse_m": a.stats["rmse"],
+            "paper_ate_rmse_m": PAPER_ATE_M.get(name) if att == "groundtruth" else None,
             "fps_end_to_end": res.fps_end_to_end, "fps_compute": res.fps_compute, "wall_s": wall,
             "stage_ms_per_frame": {k: v / max(res.frames_processed, 1) for k, v in out.stage_ms.items()},
         })
-        print(f"  {name:22s} {att:11s} ATE {a.stats['rmse'] * 100:6.2f} cm  {res.fps_end_to_end:6.1f} fps e2e  {res.fps_compute:6.1f} fps compute")
+        extra = f" (offset {offset * 1000:+.1f} ms)" if offset is not None else ""
+        print(f"  {name:22s} {att:11s} {setting:15s} ATE {a.stats['rmse'] * 100:6.2f} cm  {res.fps_end_to_end:6.1f} fps e2e  "
+              f"{res.fps_compute:6.1f} fps compute{extra}", flush=True)
     return rows
 
 
@@ -105,6 +125,7 @@ def plot(result: dict, path: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     acc = result["accuracy"]
+    acc = [r for r in acc if r["setting"] == "default"]
     labels = [f"{r['sequence']}\n{r['attitude']}" for r in acc]
     axes[0].bar(range(len(acc)), [100 * r["ate_rmse_m"] for r in acc], color="tab:blue")
     for i, r in enumerate(acc):
@@ -112,7 +133,7 @@ def plot(result: dict, path: Path) -> None:
             axes[0].plot([i - 0.4, i + 0.4], [100 * r["paper_ate_rmse_m"]] * 2, "r--", label="paper")
     axes[0].set_xticks(range(len(acc)), labels, rotation=60, ha="right", fontsize=7)
     axes[0].set_ylabel("ATE RMSE (cm)")
-    axes[0].set_title("NI-SLAM accuracy")
+    axes[0].set_title("NI-SLAM accuracy (default settings)")
     axes[0].legend(loc="upper left")
     for dev in sorted({r["device"] for r in result["batched_kcc"]}):
         rows = [r for r in result["batched_kcc"] if r["device"] == dev]
@@ -132,6 +153,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--settings", default=",".join(SETTINGS), help=f"comma-separated subset of {', '.join(SETTINGS)}")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -141,7 +163,11 @@ def main() -> None:
     result = {"machine": environment_info(), "quick": args.quick}
     print(f"machine: {result['machine']}")
     print("accuracy and frame rate per sequence:")
-    result["accuracy"] = accuracy(root, args.quick)
+    settings = args.settings.split(",")
+    unknown = [x for x in settings if x not in SETTINGS]
+    if unknown:
+        ap.error(f"--settings: unknown {', '.join(unknown)}; choose from {', '.join(SETTINGS)}")
+    result["accuracy"] = accuracy(root, args.quick, settings)
     sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
     print("batched KCC stage:")
     result["batched_kcc"] = batched_kcc(root, sizes, "cpu", 3 if args.quick else 5)
@@ -149,11 +175,13 @@ def main() -> None:
         result["batched_kcc"] += batched_kcc(root, sizes, "cuda", 20)
     (out / "bench_nislam.json").write_text(json.dumps(result, indent=2) + "\n")
     plot(result, out / "bench_nislam.png")
-    print("\n| sequence | attitude | frames | keyframes | loops | ATE RMSE (cm) | paper (cm) | frames/s end-to-end | frames/s compute |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("\n| sequence | attitude | setting | frames | keyframes | loops | ATE RMSE (cm) | paper (cm) | frames/s end-to-end | frames/s compute |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in result["accuracy"]:
         paper = f"{100 * r['paper_ate_rmse_m']:.1f}" if r["paper_ate_rmse_m"] else "–"
-        print(f"| {r['sequence']} | {r['attitude']} | {r['frames']} | {r['keyframes']} | {r['loops_accepted']} | "
+        off = r["attitude_time_offset_s"]
+        setting = r["setting"] if off is None else f"time offset {1000 * off:+.1f} ms"
+        print(f"| {r['sequence']} | {r['attitude']} | {setting} | {r['frames']} | {r['keyframes']} | {r['loops_accepted']} | "
               f"{100 * r['ate_rmse_m']:.2f} | {paper} | {r['fps_end_to_end']:.1f} | {r['fps_compute']:.1f} |")
     print("\n| device | B | frames/s (median) | frames/s (best) |\n|---|---:|---:|---:|")
     for r in result["batched_kcc"]:

@@ -93,3 +93,13 @@ def test_each_system_yaml_states_every_default(system):
     path = REPO_ROOT / "configs" / f"{system}.yaml"
     assert load_config(cls, path) == cls()
     assert _missing_keys(config_to_dict(cls()), yaml.safe_load(path.read_text())) == []
+
+
+def test_nislam_fast_preset_changes_only_the_pixel_stride():
+    from torchslam.config import config_to_dict
+    from torchslam.slam.nislam import NISlamConfig
+
+    fast = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_fast.yaml")
+    assert fast.pixel_stride == 2
+    a, b = config_to_dict(fast), config_to_dict(NISlamConfig())
+    assert {k for k in a if a[k] != b[k]} == {"pixel_stride"}
