@@ -36,6 +36,7 @@ SETTINGS = {
     # the attitude stream sampled at image stamp + the offset estimated from the images first
     "time-offset": {},
     "pixel_stride=2": {"pixel_stride": 2},
+    "pixel_stride=2+ortho240x320": {"pixel_stride": 2, "kcc": {"ortho_height": 240, "ortho_width": 320}},
 }
 
 

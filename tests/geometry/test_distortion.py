@@ -111,3 +111,23 @@ def test_uninvertible_distortion_raises():
     cam = PinholeCamera(100.0, 100.0, 320.0, 240.0, 640, 480, (-2.0, 0.0, 0.0, 0.0))
     with pytest.raises(ShapeError, match="cannot be inverted"):
         undistorted_rays(cam)
+
+
+def test_undistorted_rays_with_a_step_are_the_strided_full_rays_and_cached():
+    from torchslam.geometry import PinholeCamera, undistorted_rays
+    from torchslam.geometry import camera as camera_module
+
+    cam = PinholeCamera(129.3, 129.1, 79.6, 63.8, 161, 121, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))
+    full = undistorted_rays(cam).view(121, 161, 2)
+    for step in (2, 3):
+        part = undistorted_rays(cam, step=step)
+        assert torch.equal(part, full[::step, ::step].reshape(-1, 2))
+    plain = PinholeCamera(129.3, 129.1, 79.6, 63.8, 161, 121)
+    assert torch.equal(undistorted_rays(plain, step=2), undistorted_rays(plain).view(121, 161, 2)[::2, ::2].reshape(-1, 2))
+    # Cached per (camera, step): a second call does not invert again, and callers get a copy.
+    again = undistorted_rays(cam, step=2)
+    again.zero_()
+    assert (cam, 2) in camera_module._RAYS_CACHE
+    assert torch.equal(undistorted_rays(cam, step=2), full[::2, ::2].reshape(-1, 2))
+    with pytest.raises(ShapeError, match="step"):
+        undistorted_rays(cam, step=0)

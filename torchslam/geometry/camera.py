@@ -165,8 +165,12 @@ def distort_planes(x: Tensor, y: Tensor, distortion: tuple[float, ...]) -> tuple
     return xd, yd
 
 
+_RAYS_CACHE: dict[tuple, Tensor] = {}
+_RAYS_CACHE_MAX = 8
+
+
 def undistorted_rays(
-    camera: PinholeCamera, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+    camera: PinholeCamera, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None, step: int = 1
 ) -> Tensor:
     """Normalised viewing rays ``(x, y) = (X / Z, Y / Z)`` of every pixel, lens distortion removed.
 
@@ -178,13 +182,19 @@ def undistorted_rays(
     distortion the rays are exactly ``((u - cx) / fx, (v - cy) / fy)`` as ``backproject_depth``
     computes them.
 
+    The float64 rays of a distorted camera are kept in a small cache (the inversion costs about
+    0.25 s for 640x480 on a CPU core), so runs on the same camera compute them once.
+
     Args:
         camera: intrinsics, image size and distortion.
         dtype: floating dtype of the result.
         device: device of the result.
+        step: rays of every ``step``-th pixel in x and y only (the pixels ``(k step, l step)``),
+            the rows and columns ``[::step, ::step]`` of the full result, computed alone.
 
     Returns:
-        (H*W, 2) normalised coordinates, row-major pixel order (``backproject_depth``'s order).
+        (H*W, 2) normalised coordinates, row-major pixel order (``backproject_depth``'s order);
+        with ``step``, (ceil(H/step) * ceil(W/step), 2).
 
     Raises:
         ShapeError: when the inversion does not converge (distortion too strong for the image,
@@ -192,12 +202,30 @@ def undistorted_rays(
     """
     if not isinstance(camera, PinholeCamera):
         raise ShapeError(f"camera: expected a PinholeCamera, got {type(camera).__name__}")
+    if not (isinstance(step, int) and step >= 1):
+        raise ShapeError(f"step: expected a positive integer, got {step!r}")
     if not camera.has_distortion:
-        return _pinhole_rays(camera, dtype, device)
-    xd = _pinhole_rays(camera, torch.float64, "cpu")  # distorted normalised coordinates of the pixels
+        rays = _pinhole_rays(camera, dtype, device)
+        return rays if step == 1 else rays.view(camera.height, camera.width, 2)[::step, ::step].reshape(-1, 2)
+    key = (camera, step)
+    xy = _RAYS_CACHE.get(key)
+    if xy is None:
+        xy = _invert_distortion(camera, step)
+        if len(_RAYS_CACHE) >= _RAYS_CACHE_MAX:
+            _RAYS_CACHE.pop(next(iter(_RAYS_CACHE)))
+        _RAYS_CACHE[key] = xy
+    return xy.to(dtype=dtype, device=device, copy=True)
+
+
+def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
+    """float64 CPU (N, 2) undistorted rays of the pixels ``[::step, ::step]`` (``undistorted_rays``)."""
     v, u = torch.meshgrid(
-        torch.arange(camera.height, dtype=torch.float64), torch.arange(camera.width, dtype=torch.float64), indexing="ij"
+        torch.arange(0, camera.height, step, dtype=torch.float64),
+        torch.arange(0, camera.width, step, dtype=torch.float64),
+        indexing="ij",
     )
+    # distorted normalised coordinates of the pixels, as _pinhole_rays computes them
+    xd = torch.stack([(u.reshape(-1) - camera.cx) / camera.fx, (v.reshape(-1) - camera.cy) / camera.fy], dim=-1)
     import cv2  # only distorted cameras need OpenCV; keep it out of the geometry import
 
     K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
@@ -218,7 +246,7 @@ def undistorted_rays(
     err_px = ((distort_normalized(xy, camera.distortion) - xd) * xd.new_tensor([camera.fx, camera.fy])).abs().max()
     if not bool(torch.isfinite(err_px)) or float(err_px) > 1e-6:
         raise ShapeError(f"camera: lens distortion {camera.distortion} cannot be inverted over the image (residual {float(err_px):.3g} px)")
-    return xy.to(dtype=dtype, device=device)
+    return xy
 
 
 def _pinhole_rays(camera: PinholeCamera, dtype: torch.dtype, device) -> Tensor:

@@ -374,8 +374,7 @@ class NISlam:
         self.rays: Tensor | None = None
         self.distortion: tuple[float, ...] | None = None
         if cfg.undistort and cam.has_distortion:
-            rays = undistorted_rays(cam, torch.float32, self.device).view(cam.height, cam.width, 2)
-            self.rays = rays[::s, ::s].reshape(-1, 2).contiguous()
+            self.rays = undistorted_rays(cam, torch.float32, self.device, step=s)
             self.distortion = cam.distortion
         # Systems whose cameras agree here share the rays and the lens: one back-projection call.
         self._lens_key = None if self.rays is None else (cam, s)
