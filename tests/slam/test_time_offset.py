@@ -101,6 +101,7 @@ def test_nislam_attitude_time_offset_undoes_a_shifted_stream():
     fixed = run_sequence(NISlam(cfg(0.02)), shifted).output
     wrong = run_sequence(NISlam(cfg()), shifted).output
     assert torch.equal(fixed.timestamps, base.timestamps)  # trajectories keep the image stamps
+    assert fixed.metrics["attitude_time_offset_s"] == 0.02 and base.metrics["attitude_time_offset_s"] == 0.0
     assert torch.allclose(fixed.T_wc, base.T_wc, atol=1e-6)
     # Without the offset the first frame lies before the shifted stream (untracked) and the rest
     # take rotations 20 ms stale.

@@ -755,6 +755,7 @@ class NISlam:
         )
         return {
             "attitude_source": self.attitude.source,
+            "attitude_time_offset_s": self.cfg.attitude_time_offset,
             "psr": stats,
             "fused_frames": self.fused,
             "motion_prior_frames": self.motion_prior_frames,
