@@ -294,3 +294,31 @@ def test_bad_input_raises_named_errors():
         kinematics_from_trajectory(t[:1], torch.eye(4, dtype=F64)[None])
     with pytest.raises(ConfigError, match="seed"):
         make_generator("seven")
+
+
+def test_attitude_stream_few_queries_numpy_path_equals_interpolate_rotations():
+    from torchslam.geometry import so3_exp
+    from torchslam.imu.attitude import AttitudeStream
+    from torchslam.imu.simulate import interpolate_rotations
+
+    g = torch.Generator().manual_seed(4)
+    t = torch.cumsum(torch.rand(300, generator=g, dtype=torch.float64) * 0.02 + 0.001, 0)
+    t[150:] += 0.3  # a gap wider than max_gap
+    R = so3_exp(torch.randn(300, 3, generator=g, dtype=torch.float64))
+    stream = AttitudeStream(t, R, "imu")
+    # Inside, before, after, on samples, inside the gap.
+    q = torch.cat([torch.rand(10, generator=g, dtype=torch.float64) * float(t[-1] + 1) - 0.5,
+                   t[:1], t[-1:], t[149:150] + 0.1])
+    for queries in (q, q[:2], q[-1:]):
+        a, va = stream.at(queries, 0.1)  # NumPy path (<= 16 queries)
+        b, vb = interpolate_rotations(t, R, queries, 0.1)
+        assert torch.equal(va, vb)
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    assert not bool(stream.at(t[149:150] + 0.1, 0.1)[1][0])  # in the gap
+    many = torch.linspace(-0.1, float(t[-1]) + 0.1, 40, dtype=torch.float64)  # torch path
+    torch.testing.assert_close(stream.at(many, 0.1)[0], interpolate_rotations(t, R, many, 0.1)[0], atol=0, rtol=0)
+    one = AttitudeStream(t[:1], R[:1], "imu")
+    a, va = one.at(torch.tensor([float(t[0]), float(t[0]) + 1.0], dtype=torch.float64))
+    b, vb = interpolate_rotations(t[:1], R[:1], torch.tensor([float(t[0]), float(t[0]) + 1.0], dtype=torch.float64))
+    assert torch.equal(va, vb)
+    torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
