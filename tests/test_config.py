@@ -103,3 +103,14 @@ def test_nislam_fast_preset_changes_only_the_pixel_stride():
     assert fast.pixel_stride == 2
     a, b = config_to_dict(fast), config_to_dict(NISlamConfig())
     assert {k for k in a if a[k] != b[k]} == {"pixel_stride"}
+
+
+def test_nislam_faster_preset_changes_only_stride_and_orthographic_size():
+    from torchslam.config import config_to_dict
+    from torchslam.slam.nislam import NISlamConfig
+
+    fast = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_faster.yaml")
+    assert (fast.pixel_stride, fast.kcc.ortho_height, fast.kcc.ortho_width) == (2, 240, 320)
+    a, b = config_to_dict(fast), config_to_dict(NISlamConfig())
+    assert {k for k in a if a[k] != b[k]} == {"pixel_stride", "kcc"}
+    assert {k for k in a["kcc"] if a["kcc"][k] != b["kcc"][k]} == {"ortho_height", "ortho_width"}
