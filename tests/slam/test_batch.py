@@ -29,6 +29,7 @@ from torchslam.slam.batch import (
 from torchslam.slam.run import DataConfig
 
 from ..conftest import REPO_ROOT
+from ._sequences import EditedSequence, interrupt_at
 
 # Tiny synthetic sequences; NI-SLAM's orthographic map shrunk to match the 160 x 120 images.
 SMALL = [
@@ -218,25 +219,8 @@ def test_ctrl_c_keeps_finished_sequences_and_a_rerun_completes_the_batch(tmp_pat
     out = tmp_path / "b"
     real = batch_mod.run_sequence  # the counting wrapper
 
-    class Interrupting:
-        """The sequence as seen by the system, with Ctrl-C pressed at its 5th frame."""
-
-        def __init__(self, seq):
-            self.seq = seq
-            self.name, self.camera, self.timestamps = seq.name, seq.camera, seq.timestamps
-            self.groundtruth, self.attitude = seq.groundtruth, seq.attitude
-
-        def __len__(self):
-            return len(self.seq)
-
-        def __iter__(self):
-            for f in self.seq:
-                if f.index == 4:
-                    raise KeyboardInterrupt
-                yield f
-
     def interrupt_second(system, sequence, **kw):
-        return real(system, Interrupting(sequence) if len(count_runs) == 1 else sequence, **kw)
+        return real(system, EditedSequence(sequence, interrupt_at(4)) if len(count_runs) == 1 else sequence, **kw)
 
     monkeypatch.setattr(batch_mod, "run_sequence", interrupt_second)
     assert _batch(out, "synthetic:3") == 130

@@ -13,6 +13,8 @@ from torchslam.slam import RunResult, run_sequence
 from torchslam.slam.lockstep import default_max_batch, run_lockstep
 from torchslam.slam.nislam import NISlam, NISlamConfig, track_frames
 
+from ._sequences import EditedSequence, interrupt_at
+
 TINY = dict(width=160, height=120, fps=10.0)
 CFG = config_from_dict(NISlamConfig, {"min_valid_points": 100, "kcc": {"ortho_height": 90, "ortho_width": 120}})
 
@@ -22,24 +24,6 @@ def _sequences():
     # keyframe changes (and re-matching after a lost keyframe) within a few frames.
     specs = [(14, "orbit", 0), (9, "translate", 1), (18, "loop", 2)]
     return [generate_sequence(SyntheticConfig(frames=n, trajectory=t, seed=s, **TINY)) for n, t, s in specs]
-
-
-class _Edited:
-    """A sequence with frames replaced (or failing) on the way out, to plant bad input."""
-
-    def __init__(self, seq, edit, name=None):
-        self.seq, self.edit = seq, edit
-        self.name = name or seq.name
-        self.camera, self.timestamps, self.groundtruth, self.attitude = seq.camera, seq.timestamps, seq.groundtruth, seq.attitude
-
-    def __len__(self):
-        return len(self.seq)
-
-    def __getitem__(self, i):
-        return self.edit(self.seq[i])
-
-    def __iter__(self):
-        return (self[i] for i in range(len(self)))
 
 
 def _assert_same_run(single: RunResult, batched: RunResult, atol: float) -> None:
@@ -101,9 +85,9 @@ def test_a_failing_sequence_does_not_stop_the_others(monkeypatch):
     monkeypatch.setattr(NISlam, "_track_inputs", failing_inputs)
     seqs = [
         good,
-        _Edited(short, bad_frame),
-        _Edited(longer, unreadable),
-        _Edited(longer, lambda f: f, name="fails-in-tracking"),
+        EditedSequence(short, bad_frame),
+        EditedSequence(longer, unreadable),
+        EditedSequence(longer, name="fails-in-tracking"),
     ]
     results = run_lockstep(CFG, seqs, max_batch=4)
     assert isinstance(results[1], ShapeError) and "rgb" in str(results[1])
@@ -116,12 +100,7 @@ def test_a_failing_sequence_does_not_stop_the_others(monkeypatch):
 def test_ctrl_c_finishes_every_sequence_with_what_it_has():
     a, b, c = _sequences()
 
-    def interrupt(f: Frame) -> Frame:
-        if f.index == 5:
-            raise KeyboardInterrupt
-        return f
-
-    results = run_lockstep(CFG, [a, _Edited(b, interrupt), c], max_batch=3)
+    results = run_lockstep(CFG, [a, EditedSequence(b, interrupt_at(5)), c], max_batch=3)
     for r in results:
         # Every sequence had tracked frames 0..4 when the second one's frame 5 was requested.
         assert isinstance(r, RunResult) and r.interrupted

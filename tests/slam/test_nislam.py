@@ -16,6 +16,7 @@ from torchslam.slam import run_sequence
 from torchslam.slam.nislam import NISlam, NISlamConfig
 
 from ..conftest import REPO_ROOT
+from ._sequences import EditedSequence
 
 SMALL = dict(width=320, height=240)
 
@@ -63,31 +64,13 @@ def test_tum_fr1_xyz_each_attitude_source(shared_data, attitude, limit_m):
         _run(TUMSequence(shared_data / "tum_fr1_xyz", end=3), attitude="imu")
 
 
-class _Edited:
-    """A synthetic sequence with some frames replaced, to plant bad input."""
-
-    def __init__(self, seq, edit):
-        self.seq, self.edit = seq, edit
-        self.name, self.camera, self.timestamps, self.groundtruth = seq.name, seq.camera, seq.timestamps, seq.groundtruth
-        self.attitude = seq.attitude
-
-    def __len__(self):
-        return len(self.seq)
-
-    def __getitem__(self, i):
-        return self.edit(self.seq[i])
-
-    def __iter__(self):
-        return (self[i] for i in range(len(self)))
-
-
 def test_frames_without_depth_are_counted_not_fatal():
     seq = generate_sequence(SyntheticConfig(frames=20, trajectory="translate", **SMALL))
 
     def blank(f: Frame) -> Frame:
         return dataclasses.replace(f, depth=torch.zeros_like(f.depth)) if f.index in (5, 6) else f
 
-    result, _ = _run(_Edited(seq, blank))
+    result, _ = _run(EditedSequence(seq, blank))
     assert result.output.metrics["untracked"]["too_few_points"] == 2
     assert len(result.output.T_wc) == 18 and torch.isfinite(result.output.T_wc).all()
     assert 5 not in result.output.frame_indices.tolist()
@@ -100,7 +83,7 @@ def test_unrelated_frame_collapses_psr_and_starts_a_keyframe():
     def swap(f: Frame) -> Frame:
         return dataclasses.replace(f, rgb=other.rgb, depth=other.depth) if f.index == 10 else f
 
-    result, _ = _run(_Edited(seq, swap), loop={"enabled": False})
+    result, _ = _run(EditedSequence(seq, swap), loop={"enabled": False})
     out = result.output
     assert 10 in out.keyframe_indices.tolist()
     assert torch.isfinite(out.T_wc).all() and len(out.T_wc) == 16
@@ -113,7 +96,7 @@ def test_frame_lost_against_a_fresh_keyframe_takes_the_constant_velocity_positio
     def swap(f: Frame) -> Frame:
         return dataclasses.replace(f, rgb=other.rgb, depth=other.depth) if f.index == 10 else f
 
-    result, a = _run(_Edited(seq, swap), loop={"enabled": False}, lost_uses_prior=True)
+    result, a = _run(EditedSequence(seq, swap), loop={"enabled": False}, lost_uses_prior=True)
     out = result.output
     # Frame 10, and frame 11, which meets the keyframe made of frame 10's unrelated content.
     assert out.metrics["motion_prior_frames"] == 2
@@ -146,14 +129,6 @@ def test_bad_config_values_name_the_key():
     assert math.isclose(config_from_dict(NISlamConfig, {"kcc": {"sigma": 0.3}}).kcc.sigma, 0.3)
 
 
-class _Recalibrated(_Edited):
-    """A synthetic sequence reporting another camera (here: one with lens distortion)."""
-
-    def __init__(self, seq, camera):
-        super().__init__(seq, lambda f: f)
-        self.camera = camera
-
-
 @pytest.mark.parametrize("stride", [1, 2])
 def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
     from torchslam.geometry import undistorted_rays
@@ -161,11 +136,11 @@ def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
     seq = generate_sequence(SyntheticConfig(frames=3, trajectory="translate", **SMALL))
     cam = dataclasses.replace(seq.camera, distortion=(0.26, -0.95, -0.005, 0.003, 1.16))
     on = NISlam(NISlamConfig(pixel_stride=stride))
-    on.start(_Recalibrated(seq, cam))
+    on.start(EditedSequence(seq, camera=cam))
     full = undistorted_rays(cam, torch.float32).view(cam.height, cam.width, 2)
     assert torch.equal(on.rays, full[::stride, ::stride].reshape(-1, 2)) and on.distortion == cam.distortion
     off = NISlam(NISlamConfig(pixel_stride=stride, undistort=False))
-    off.start(_Recalibrated(seq, cam))
+    off.start(EditedSequence(seq, camera=cam))
     assert off.rays is None and off.distortion is None
     plain = NISlam(NISlamConfig(pixel_stride=stride))
     plain.start(seq)  # no distortion: the pinhole path, untouched

@@ -14,6 +14,8 @@ from torchslam.slam import run_sequence
 from torchslam.slam.nislam import NISlam, NISlamConfig
 from torchslam.slam.outputs import METRIC_KEYS, write_run
 
+from ._sequences import EditedSequence, interrupt_at
+
 SMALL = ["--set", "data.synthetic.frames=12", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120"]
 
 
@@ -43,23 +45,8 @@ def test_run_writes_the_complete_run_folder(tmp_path, capsys):
 def test_ctrl_c_keeps_what_was_computed(tmp_path):
     seq = generate_sequence(SyntheticConfig(frames=10, width=160, height=120, trajectory="translate"))
 
-    class Interrupting:
-        def __init__(self, seq):
-            self.seq = seq
-            self.name, self.camera, self.timestamps = seq.name, seq.camera, seq.timestamps
-            self.groundtruth, self.attitude = seq.groundtruth, seq.attitude
-
-        def __len__(self):
-            return len(self.seq)
-
-        def __iter__(self):
-            for f in self.seq:
-                if f.index == 6:
-                    raise KeyboardInterrupt
-                yield f
-
     cfg = config_from_dict(NISlamConfig, {"min_valid_points": 100, "kcc": {"ortho_height": 90, "ortho_width": 120}})
-    seq_i = Interrupting(seq)
+    seq_i = EditedSequence(seq, interrupt_at(6))
     result = run_sequence(NISlam(cfg), seq_i)
     assert result.interrupted and result.frames_processed == 6
     metrics = write_run(tmp_path, "nislam", result, seq_i)

@@ -16,6 +16,8 @@ from torchslam.slam import run_sequence
 from torchslam.slam.nislam import NISlam, NISlamConfig
 from torchslam.slam.time_offset import estimate_attitude_time_offset, rotation_agreement
 
+from ._sequences import EditedSequence
+
 
 def _spinning_stream(rate_hz: float = 200.0, seconds: float = 3.0) -> AttitudeStream:
     """Rotation about a slowly turning axis at a varying rate: relative rotations differ for every offset."""
@@ -70,25 +72,6 @@ def test_estimate_rejects_bad_arguments(orbit):
         estimate_attitude_time_offset(orbit, orbit.attitude, frame_gap=0)
 
 
-class _WithStream:
-    """A sequence whose IMU attitude stream is replaced."""
-
-    def __init__(self, seq, stream):
-        self._seq, self.attitude = seq, stream
-
-    def __getattr__(self, name):
-        return getattr(self._seq, name)
-
-    def __len__(self):
-        return len(self._seq)
-
-    def __getitem__(self, i):
-        return self._seq[i]
-
-    def __iter__(self):
-        return iter(self._seq)
-
-
 def test_nislam_attitude_time_offset_undoes_a_shifted_stream():
     seq = generate_sequence(SyntheticConfig(frames=20, width=320, height=240, trajectory="orbit", period=4.0, seed=2))
     s = seq.attitude
@@ -97,7 +80,7 @@ def test_nislam_attitude_time_offset_undoes_a_shifted_stream():
         return config_from_dict(NISlamConfig, {"attitude": "imu", "attitude_time_offset": offset, "loop": {"enabled": False}})
 
     base = run_sequence(NISlam(cfg()), seq).output
-    shifted = _WithStream(seq, AttitudeStream(s.timestamps + 0.02, s.R_wc, s.source))
+    shifted = EditedSequence(seq, attitude=AttitudeStream(s.timestamps + 0.02, s.R_wc, s.source))
     fixed = run_sequence(NISlam(cfg(0.02)), shifted).output
     wrong = run_sequence(NISlam(cfg()), shifted).output
     assert torch.equal(fixed.timestamps, base.timestamps)  # trajectories keep the image stamps

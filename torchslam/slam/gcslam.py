@@ -757,13 +757,9 @@ def track_frames(systems: list[GCSlam], frames: list[Frame], max_batch: int | No
     return StepReport(errors=errors, compute_s=compute)
 
 
-def _build(cfg: GCSlamConfig, device: str = "cpu", monitor: Monitor | None = None) -> GCSlam:
-    return GCSlam(cfg, device=device, monitor=monitor)
-
-
 SPEC = SystemSpec(
     name="gcslam",
     description="GC-SLAM: ORB/dense registration with FastGO global optimisation",
     config_cls=GCSlamConfig,
-    build=_build,
+    build=GCSlam,
 )

@@ -1055,13 +1055,9 @@ def _own_storage(kf_map: KeyframeMap) -> KeyframeMap:
     return KeyframeMap(grey=own(kf_map.grey), depth=own(kf_map.depth), weight=own(kf_map.weight))
 
 
-def _build(cfg: NISlamConfig, device: str = "cpu", monitor: Monitor | None = None) -> NISlam:
-    return NISlam(cfg, device=device, monitor=monitor)
-
-
 SPEC = SystemSpec(
     name="nislam",
     description="NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators",
     config_cls=NISlamConfig,
-    build=_build,
+    build=NISlam,
 )
