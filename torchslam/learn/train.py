@@ -45,6 +45,19 @@ logger = logging.getLogger(__name__)
 KCC_KEYS = ("kcc.sigma", "kcc.lam", "kcc.temperature")
 
 
+def _check_training(cfg, int_keys: tuple[str, ...]) -> None:
+    """Checks shared by the training configs: disjoint, non-empty seed sets, positive ints and lr."""
+    if set(cfg.train_seeds) & set(cfg.val_seeds):
+        raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(cfg.train_seeds) & set(cfg.val_seeds))}")
+    for key in int_keys:
+        if not (isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1):
+            raise ConfigError(f"{key}: expected a positive int, got {getattr(cfg, key)!r}")
+    if not (cfg.lr > 0):
+        raise ConfigError(f"lr: expected a positive learning rate, got {cfg.lr!r}")
+    if not cfg.train_seeds or not cfg.val_seeds:
+        raise ConfigError("train_seeds, val_seeds: expected at least one seed each")
+
+
 @dataclass(frozen=True)
 class KCCTrainConfig:
     """Settings of :func:`train_kcc`.
@@ -91,15 +104,7 @@ class KCCTrainConfig:
         unknown = [k for k in self.names if k not in KCC_KEYS]
         if unknown or not self.names:
             raise ConfigError(f"names: the KCC objective learns some of {list(KCC_KEYS)}, got {list(self.names)}")
-        if set(self.train_seeds) & set(self.val_seeds):
-            raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(self.train_seeds) & set(self.val_seeds))}")
-        for key in ("steps", "eval_every", "frames", "width", "height", "ortho_height", "ortho_width"):
-            if not (isinstance(getattr(self, key), int) and getattr(self, key) >= 1):
-                raise ConfigError(f"{key}: expected a positive int, got {getattr(self, key)!r}")
-        if not (self.lr > 0):
-            raise ConfigError(f"lr: expected a positive learning rate, got {self.lr!r}")
-        if not self.train_seeds or not self.val_seeds:
-            raise ConfigError("train_seeds, val_seeds: expected at least one seed each")
+        _check_training(self, ("steps", "eval_every", "frames", "width", "height", "ortho_height", "ortho_width"))
 
 
 @dataclass
@@ -266,15 +271,7 @@ class PairNetTrainConfig:
     eval_iterations: int = 30
 
     def __post_init__(self) -> None:
-        if set(self.train_seeds) & set(self.val_seeds):
-            raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(self.train_seeds) & set(self.val_seeds))}")
-        for key in ("steps", "eval_every", "unroll", "eval_iterations"):
-            if not (isinstance(getattr(self, key), int) and getattr(self, key) >= 1):
-                raise ConfigError(f"{key}: expected a positive int, got {getattr(self, key)!r}")
-        if not (self.lr > 0):
-            raise ConfigError(f"lr: expected a positive learning rate, got {self.lr!r}")
-        if not self.train_seeds or not self.val_seeds:
-            raise ConfigError("train_seeds, val_seeds: expected at least one seed each")
+        _check_training(self, ("steps", "eval_every", "unroll", "eval_iterations"))
 
 
 def _graphs(cfg: PairNetTrainConfig, seeds) -> list[FalseLoopProblem]:
