@@ -376,5 +376,12 @@ def test_sample_grey_rotated_equals_per_point_sampling_to_hundredths_of_a_pixel(
     same, ok_same = sample_grey_rotated(rgb, valid, eye, intr, rays=rays, grey_image=grey0, distortion=dist)
     # (to 0.001 px through the lens: the node rays are interpolated in the per-pixel ray image)
     torch.testing.assert_close(same[valid], grey0[valid], atol=1e-6 if distorted else 1e-12, rtol=0)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
     with pytest.raises(ShapeError, match="behind the camera"):
-        sample_grey_rotated(rgb, valid, torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)).expand(2, 3, 3), intr)
+        sample_grey_rotated(rgb, valid, flip.expand(2, 3, 3), intr)
+    # With the points, an item the warp cannot serve is sampled per point; the others are not.
+    mixed = torch.stack([R[0], flip])
+    g, ok = sample_grey_rotated(rgb, valid, mixed, intr, rays=rays, grey_image=grey0, distortion=dist, step=2, points=points)
+    g_ref, ok_ref = sample_grey(rgb[1:], points[1:], valid[1:], flip[None], intr[1:], grey_image=grey0[1:], distortion=dist)
+    assert torch.equal(g[1], g_ref[0]) and torch.equal(ok[1], ok_ref[0])
+    assert torch.equal(g[0], fast[0]) and torch.equal(ok[0], ok_f[0])

@@ -227,6 +227,7 @@ def sample_grey_rotated(
     grey_image: Tensor | None = None,
     distortion: tuple[float, ...] | None = None,
     step: int = 8,
+    points: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """``sample_grey`` for a pure rotation, without the points: one smooth warp per image.
 
@@ -250,9 +251,16 @@ def sample_grey_rotated(
         grey_image: (B, H*W) ``grey_from_rgb(rgb)`` if the caller has it.
         distortion: lens distortion applied to the rotated rays (``sample_grey``).
         step: approximate node spacing, pixels (>= 1).
+        points: (B, H*W, 3) the depth pixels' points (``rgbd_to_points``). Only items whose
+            rotation turns part of the image behind the camera use them: those are sampled per
+            point by ``sample_grey``; the others never depend on them.
 
     Returns:
         As ``sample_grey``: (B, H*W) grey (0 where not valid) and (B, H*W) bool validity.
+
+    Raises:
+        ShapeError: an item's rotation turns part of the image behind the camera and no
+            ``points`` were given.
     """
     dims: dict[str, int] = {}
     check_shape(rgb, "B 3 H W", "rgb", dims)
@@ -287,9 +295,9 @@ def sample_grey_rotated(
     X = R[:, 0, 0, None, None] * rx + R[:, 0, 1, None, None] * ry + R[:, 0, 2, None, None]
     Y = R[:, 1, 0, None, None] * rx + R[:, 1, 1, None, None] * ry + R[:, 1, 2, None, None]
     Z = R[:, 2, 0, None, None] * rx + R[:, 2, 1, None, None] * ry + R[:, 2, 2, None, None]
-    front = bool((Z > 0).all())
-    if not front:
-        raise ShapeError("rotation: turns part of the image behind the camera; use sample_grey with the points")
+    behind = ~(Z > 0).flatten(1).all(dim=1)  # (B,) items the warp cannot serve
+    if bool(behind.any()) and points is None:
+        raise ShapeError("rotation: turns part of the image behind the camera; pass the points (or use sample_grey)")
     x, y = X / Z, Y / Z
     if distortion is not None and any(c != 0.0 for c in distortion):
         x, y = distort_planes(x, y, distortion)
@@ -305,7 +313,12 @@ def sample_grey_rotated(
     grey_img = grey_image.to(dtype).view(B, 1, H, W)
     grey = F.grid_sample(grey_img, grid.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=False)
     ok = valid & inside
-    return where(ok, grey.flatten(1), 0.0), ok
+    grey = where(ok, grey.flatten(1), 0.0)
+    if bool(behind.any()):
+        idx = behind.nonzero().flatten()
+        g, v = sample_grey(rgb[idx], points[idx], valid[idx], rotation[idx], intr[idx], grey_image[idx], distortion)
+        grey, ok = grey.index_copy(0, idx, g.to(grey.dtype)), ok.index_copy(0, idx, v)
+    return grey, ok
 
 
 # The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come

@@ -68,7 +68,6 @@ from ..kcc import (
     keyframe_map,
     orthographic_project,
     rgbd_to_points,
-    sample_grey,
     sample_grey_rotated,
 )
 from ..loop import MILDConfig, MILDDatabase
@@ -594,10 +593,9 @@ class NISlam:
         ortho = orthographic_project(points, grey, valid, None, r, size)
         kf = _Keyframe(frame.index, frame.timestamp, T_wi, R_att, r, keyframe_map(ortho), None, points, grey, valid)
         if previous is not None:
-            # The previous keyframe's filter and cloud are no longer needed for tracking; its map
-            # may be a row of a batch (``track_frames``) and is given storage of its own.
+            # The previous keyframe's filter (possibly a row of a batch, ``track_frames``) is no
+            # longer needed for tracking.
             previous.filter = None
-            previous.map = _own_storage(previous.map)
         self.keyframes.append(kf)
         self._ensure_filter(kf)
         kid = len(self.keyframes) - 1
@@ -959,20 +957,19 @@ class _Step:
             self.results[items[0]] = res
             return
         for k, i in enumerate(items):
-            # Keep the keyframes as rows of this batch: the next step stacks them without a copy.
-            kf = systems[i].keyframes[-1]
-            kf.map, kf.filter = _row(kf_map, k), _row(kf_filter, k)
+            # Keep the filters as rows of this batch: the next step stacks them without a copy.
+            # (The maps are not: most frames fuse into theirs, which replaces it anyway.)
+            systems[i].keyframes[-1].filter = _row(kf_filter, k)
             self.results[i] = _row(res, k)
 
 
 def _grey_at_depth_time(rgb, points, valid, R_cd, intrinsics, grey, system: NISlam) -> tuple[Tensor, Tensor]:
     """Grey of each depth pixel seen at the colour instant: a rotation-only warp per image
-    (``sample_grey_rotated``, ~3x cheaper than projecting every point); the per-point
-    ``sample_grey`` where a rotation would turn part of the image behind the camera."""
-    try:
-        return sample_grey_rotated(rgb, valid, R_cd, intrinsics, rays=system.rays, grey_image=grey, distortion=system.distortion)
-    except ShapeError:
-        return sample_grey(rgb, points, valid, R_cd, intrinsics, grey_image=grey, distortion=system.distortion)
+    (``sample_grey_rotated``, ~3x cheaper than projecting every point; per point only for an
+    item whose rotation turns part of the image behind the camera)."""
+    return sample_grey_rotated(
+        rgb, valid, R_cd, intrinsics, rays=system.rays, grey_image=grey, distortion=system.distortion, points=points
+    )
 
 
 def _groups(items: list[int], key) -> list[list[int]]:
@@ -1045,14 +1042,6 @@ def _row(batch, k: int):
         else:
             values[f.name] = v
     return type(batch)(**values)
-
-
-def _own_storage(kf_map: KeyframeMap) -> KeyframeMap:
-    """``kf_map`` with tensors that own their storage (not rows pinning a whole batch in memory)."""
-    def own(t: Tensor) -> Tensor:
-        return t.clone() if t.untyped_storage().nbytes() > t.numel() * t.element_size() else t
-
-    return KeyframeMap(grey=own(kf_map.grey), depth=own(kf_map.depth), weight=own(kf_map.weight))
 
 
 SPEC = SystemSpec(
