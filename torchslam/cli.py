@@ -261,8 +261,7 @@ def _cmd_calibrate_time(args) -> int:
     print(f"pairs registered  {est.pairs}")
     print(f"offset            {est.offset * 1000:+.1f} ms")
     print(f"rotation RMS      {est.cost_at_zero:.3f} deg at 0 ms, {est.cost_at_offset:.3f} deg at the offset")
-    edge = abs(abs(est.offset) - args.max_offset) < 1e-9
-    if edge:
+    if est.at_edge:
         print("warning: the minimum lies at the edge of the search range; widen --max-offset")
     print(f"use: torchslam run --system nislam --data {args.data} --set attitude={args.attitude} "
           f"--set attitude_time_offset={est.offset:.4f}")

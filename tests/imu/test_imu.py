@@ -296,7 +296,7 @@ def test_bad_input_raises_named_errors():
         make_generator("seven")
 
 
-def test_attitude_stream_few_queries_numpy_path_equals_interpolate_rotations():
+def test_attitude_stream_with_cached_quaternions_equals_interpolate_rotations():
     from torchslam.geometry import so3_exp
     from torchslam.imu.attitude import AttitudeStream
     from torchslam.imu.simulate import interpolate_rotations
@@ -310,15 +310,11 @@ def test_attitude_stream_few_queries_numpy_path_equals_interpolate_rotations():
     q = torch.cat([torch.rand(10, generator=g, dtype=torch.float64) * float(t[-1] + 1) - 0.5,
                    t[:1], t[-1:], t[149:150] + 0.1])
     for queries in (q, q[:2], q[-1:]):
-        a, va = stream.at(queries, 0.1)  # NumPy path (<= 16 queries)
+        a, va = stream.at(queries, 0.1)  # cached quaternions
         b, vb = interpolate_rotations(t, R, queries, 0.1)
-        assert torch.equal(va, vb)
-        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+        assert torch.equal(va, vb) and torch.equal(a, b)
     assert not bool(stream.at(t[149:150] + 0.1, 0.1)[1][0])  # in the gap
-    many = torch.linspace(-0.1, float(t[-1]) + 0.1, 40, dtype=torch.float64)  # torch path
-    torch.testing.assert_close(stream.at(many, 0.1)[0], interpolate_rotations(t, R, many, 0.1)[0], atol=0, rtol=0)
     one = AttitudeStream(t[:1], R[:1], "imu")
     a, va = one.at(torch.tensor([float(t[0]), float(t[0]) + 1.0], dtype=torch.float64))
     b, vb = interpolate_rotations(t[:1], R[:1], torch.tensor([float(t[0]), float(t[0]) + 1.0], dtype=torch.float64))
-    assert torch.equal(va, vb)
-    torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    assert torch.equal(va, vb) and torch.equal(a, b)

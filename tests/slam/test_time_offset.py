@@ -58,11 +58,19 @@ def test_estimate_recovers_a_planted_offset_from_synthetic_images(orbit, planted
     shifted = AttitudeStream(s.timestamps + planted, s.R_wc, s.source)
     est = estimate_attitude_time_offset(orbit, shifted, max_pairs=16, frame_gap=2)
     assert est.pairs == 16
-    assert est.offset == pytest.approx(planted, abs=0.004)
+    assert est.offset == pytest.approx(planted, abs=0.004) and not est.at_edge
     if planted != 0.0:
         assert est.cost_at_offset < est.cost_at_zero
     d = est.to_dict()
     assert d["offset_s"] == est.offset and len(d["cost_deg"]) == len(d["offsets_s"]) == est.offsets.numel()
+
+
+def test_estimate_reports_a_minimum_on_the_edge_of_a_too_narrow_range(orbit):
+    s = orbit.attitude
+    shifted = AttitudeStream(s.timestamps - 0.035, s.R_wc, s.source)
+    # 0.011 s is not a whole number of 2.5 ms steps: the grid ends at -0.010.
+    est = estimate_attitude_time_offset(orbit, shifted, max_offset=0.011, max_pairs=8, frame_gap=2)
+    assert est.at_edge and est.offset == pytest.approx(-0.010, abs=1e-12)
 
 
 def test_estimate_rejects_bad_arguments(orbit):

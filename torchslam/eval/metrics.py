@@ -36,7 +36,7 @@ from torch import Tensor
 from ..data.frame import associate_timestamps
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError, ShapeError, TorchSlamError, check_shape
-from ..geometry import se3_inverse, umeyama_alignment
+from ..geometry import se3_inverse, so3_angle, umeyama_alignment
 
 __all__ = [
     "AlignMode",
@@ -225,18 +225,6 @@ def _apply_alignment(T_align: Tensor, scale: Tensor, T_wc: Tensor) -> Tensor:
     out[:, :3, :3] = R_a @ T_wc[:, :3, :3]
     out[:, :3, 3] = scale * (T_wc[:, :3, 3] @ R_a.T) + t_a
     return out
-
-
-def _rotation_angle(R: Tensor) -> Tensor:
-    """Rotation angle in [0, pi] of ``(..., 3, 3)`` matrices, accurate near 0 and near pi.
-
-    ``atan2(sin, cos)`` with ``2 sin = ||vex(R - R^T)||`` and ``2 cos = tr R - 1`` avoids the
-    loss of precision of ``acos`` near 0 (about 1e-8 rad) that a 1e-6 degree tolerance would see.
-    """
-    a = R - R.transpose(-1, -2)
-    sin2 = torch.stack([a[..., 2, 1], a[..., 0, 2], a[..., 1, 0]], dim=-1).norm(dim=-1)
-    cos2 = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1
-    return torch.atan2(sin2, cos2)
 
 
 @dataclass(frozen=True)
@@ -496,7 +484,7 @@ def rpe(
     rel_est = se3_inverse(T_est[i]) @ T_est[j]
     E = se3_inverse(rel_gt) @ rel_est
     trans_errors = E[:, :3, 3].norm(dim=-1)
-    rot_errors = torch.rad2deg(_rotation_angle(E[:, :3, :3]))
+    rot_errors = torch.rad2deg(so3_angle(E[:, :3, :3]))
     return RPEResult(
         trans_stats=error_statistics(trans_errors),
         rot_stats=error_statistics(rot_errors),

@@ -205,8 +205,7 @@ def undistorted_rays(
     if not (isinstance(step, int) and step >= 1):
         raise ShapeError(f"step: expected a positive integer, got {step!r}")
     if not camera.has_distortion:
-        rays = _pinhole_rays(camera, dtype, device)
-        return rays if step == 1 else rays.view(camera.height, camera.width, 2)[::step, ::step].reshape(-1, 2)
+        return _pinhole_rays(camera, dtype, device, step)
     key = (camera, step)
     xy = _RAYS_CACHE.get(key)
     if xy is None:
@@ -219,13 +218,12 @@ def undistorted_rays(
 
 def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
     """float64 CPU (N, 2) undistorted rays of the pixels ``[::step, ::step]`` (``undistorted_rays``)."""
+    xd = _pinhole_rays(camera, torch.float64, "cpu", step)  # distorted normalised coordinates of the pixels
     v, u = torch.meshgrid(
         torch.arange(0, camera.height, step, dtype=torch.float64),
         torch.arange(0, camera.width, step, dtype=torch.float64),
         indexing="ij",
     )
-    # distorted normalised coordinates of the pixels, as _pinhole_rays computes them
-    xd = torch.stack([(u.reshape(-1) - camera.cx) / camera.fx, (v.reshape(-1) - camera.cy) / camera.fy], dim=-1)
     import cv2  # only distorted cameras need OpenCV; keep it out of the geometry import
 
     K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
@@ -249,11 +247,12 @@ def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
     return xy
 
 
-def _pinhole_rays(camera: PinholeCamera, dtype: torch.dtype, device) -> Tensor:
-    """``((u - cx) / fx, (v - cy) / fy)`` computed in ``dtype`` as ``backproject_depth`` does."""
+def _pinhole_rays(camera: PinholeCamera, dtype: torch.dtype, device, step: int = 1) -> Tensor:
+    """``((u - cx) / fx, (v - cy) / fy)`` of the pixels ``[::step, ::step]``, computed in ``dtype`` as
+    ``backproject_depth`` does."""
     v, u = torch.meshgrid(
-        torch.arange(camera.height, dtype=dtype, device=device),
-        torch.arange(camera.width, dtype=dtype, device=device),
+        torch.arange(0, camera.height, step, dtype=dtype, device=device),
+        torch.arange(0, camera.width, step, dtype=dtype, device=device),
         indexing="ij",
     )
     intr = camera.as_tensor(dtype, device)

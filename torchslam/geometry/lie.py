@@ -22,6 +22,7 @@ __all__ = [
     "vex",
     "so3_exp",
     "so3_log",
+    "so3_angle",
     "se3_exp",
     "se3_log",
     "se3_inverse",
@@ -43,6 +44,18 @@ _NEAR_PI_COS = -0.9
 def _check(x: Tensor, spec: str, name: str) -> None:
     check_shape(x, spec, name)
     check_float(x, name)
+
+
+def so3_angle(R: Tensor) -> Tensor:
+    """Rotation angle in [0, pi] of ``(..., 3, 3)`` matrices, accurate near 0 and near pi.
+
+    ``atan2(sin, cos)`` with ``2 sin = ||vex(R - R^T)||`` and ``2 cos = tr R - 1`` avoids the
+    loss of precision of ``acos`` near 0 (about 1e-8 rad) that a 1e-6 degree tolerance would see.
+    """
+    a = R - R.transpose(-1, -2)
+    sin2 = torch.stack([a[..., 2, 1], a[..., 0, 2], a[..., 1, 0]], dim=-1).norm(dim=-1)
+    cos2 = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1
+    return torch.atan2(sin2, cos2)
 
 
 def skew(v: Tensor) -> Tensor:

@@ -182,7 +182,7 @@ def make_generator(seed: int | torch.Generator, device: torch.device | str | Non
 
 
 def interpolate_rotations(
-    timestamps: Tensor, R: Tensor, times: Tensor, max_gap: float = math.inf
+    timestamps: Tensor, R: Tensor, times: Tensor, max_gap: float = math.inf, quats: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
     """Interpolate rotations at ``times`` by SLERP between the bracketing samples.
 
@@ -192,6 +192,8 @@ def interpolate_rotations(
         times: (M,) float64 query times, seconds.
         max_gap: queries whose bracketing samples are further apart than this, or that lie
             outside ``[timestamps[0], timestamps[-1]]``, are invalid.
+        quats: (N, 4) ``rotmat_to_quat_xyzw(R)`` where the caller keeps it (an attitude stream
+            queried every frame); otherwise only the bracketing samples are converted.
 
     Returns:
         R_interp: (M, 3, 3) rotations, in ``R``'s dtype (identity where invalid).
@@ -218,8 +220,9 @@ def interpolate_rotations(
     # A nanosecond of slack so a stream sampled exactly every max_gap seconds is not rejected by round-off.
     valid = (times >= timestamps[0]) & (times <= timestamps[-1]) & (span <= max_gap + 1e-9)
     # Only the bracketing samples are converted (the quaternion of each rotation does not depend
-    # on the others): converting the whole stream for every query cost NI-SLAM ~0.5 ms a frame.
-    q = rotmat_to_quat_xyzw(torch.cat([R[lo], R[hi]]))  # (2M, 4)
+    # on the others, so this equals indexing ``quats``): converting the whole stream for every
+    # query cost NI-SLAM ~0.5 ms a frame.
+    q = rotmat_to_quat_xyzw(torch.cat([R[lo], R[hi]])) if quats is None else torch.cat([quats[lo], quats[hi]])  # (2M, 4)
     Ri = quat_xyzw_to_rotmat(quat_xyzw_slerp(q[:m], q[m:], alpha.to(R.dtype)))
     return torch.where(valid[:, None, None], Ri, eye), valid
 

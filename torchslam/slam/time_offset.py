@@ -35,6 +35,7 @@ from torch import Tensor
 
 from ..data.frame import Sequence
 from ..errors import ConfigError, ShapeError, check_shape
+from ..geometry import so3_angle
 from ..imu.attitude import AttitudeStream
 from ..registration.dense import DenseConfig, register_dense
 
@@ -52,6 +53,8 @@ class TimeOffsetEstimate:
         pairs: frame pairs that registered and entered the cost.
         cost_at_zero: RMS disagreement without an offset, degrees.
         cost_at_offset: RMS disagreement at ``offset``, degrees.
+        at_edge: the minimum lies on the first or last candidate: the search range may be too
+            narrow.
     """
 
     offset: float
@@ -60,6 +63,7 @@ class TimeOffsetEstimate:
     pairs: int
     cost_at_zero: float
     cost_at_offset: float
+    at_edge: bool
 
     def to_dict(self) -> dict:
         return {
@@ -67,15 +71,10 @@ class TimeOffsetEstimate:
             "pairs": self.pairs,
             "cost_at_zero_deg": self.cost_at_zero,
             "cost_at_offset_deg": self.cost_at_offset,
+            "at_edge": self.at_edge,
             "offsets_s": self.offsets.tolist(),
             "cost_deg": self.cost.tolist(),
         }
-
-
-def _angles_deg(R: Tensor) -> Tensor:
-    """Rotation angles of (..., 3, 3) matrices, degrees."""
-    c = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.acos(c))
 
 
 def rotation_agreement(
@@ -112,7 +111,7 @@ def rotation_agreement(
     R = R.view(K, 2, P, 3, 3)
     ok = ok.view(K, 2, P).all(dim=1)  # (K, P)
     S_ij = R[:, 0].transpose(-1, -2) @ R[:, 1]  # (K, P, 3, 3)
-    ang = _angles_deg(R_ij.to(torch.float64).transpose(-1, -2)[None] @ S_ij).clamp(max=clip_deg)
+    ang = torch.rad2deg(so3_angle(R_ij.to(torch.float64).transpose(-1, -2)[None] @ S_ij)).clamp(max=clip_deg)
     n = ok.sum(-1)
     ms = (ang.square() * ok).sum(-1) / n.clamp_min(1)
     return torch.where(n > 0, ms.sqrt(), torch.full_like(ms, math.inf))
@@ -197,7 +196,8 @@ def estimate_attitude_time_offset(
     cost = rotation_agreement(stream, ti, tj, R, offsets)
     k = int(torch.argmin(cost))
     best = _parabola_min(offsets, cost, k)
-    at = rotation_agreement(stream, ti, tj, R, torch.tensor([0.0, best], dtype=torch.float64))
+    at_best = rotation_agreement(stream, ti, tj, R, torch.tensor([best], dtype=torch.float64))
     return TimeOffsetEstimate(
-        offset=best, offsets=offsets, cost=cost, pairs=len(R_ij), cost_at_zero=float(at[0]), cost_at_offset=float(at[1])
+        offset=best, offsets=offsets, cost=cost, pairs=len(R_ij), cost_at_zero=float(cost[steps]),
+        cost_at_offset=float(at_best[0]), at_edge=k in (0, len(offsets) - 1),
     )
