@@ -657,18 +657,25 @@ def _term_weights(cfg: DenseConfig, like: Tensor) -> Tensor:
     return like.new_tensor([1.0, cfg.geometric_weight])
 
 
-def _cost(wp: _Warp, s: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
-    """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one."""
-    e2 = (wp.rn / s[..., None]).square_()
+def _scaled_sq(wp: _Warp, s: Tensor) -> Tensor:
+    """(B, 2, N) squared residuals in units of their robust scales ``s`` (B, 2)."""
+    return (wp.rn / s[..., None]).square_()
+
+
+def _cost(wp: _Warp, e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
+    """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one
+    (``e2`` from :func:`_scaled_sq`)."""
     # Invalid residuals are 0 and cost 0: a plain sum over the pixels is the masked sum.
     mean = _rho(e2, robust, cfg).sum(-1) / wp.m.sum(-1).clamp_min(1)
     return (mean * _term_weights(cfg, mean)).sum(-1).double()
 
 
-def _normal_equations(wp: _Warp, A: Tensor, s: Tensor, robust: DenseRobust, cfg: DenseConfig) -> tuple[Tensor, Tensor]:
-    """(B, 6, 6) ``H`` and (B, 6) ``g`` in float64 from the rows of :func:`_jacobian_rows` (module docstring, step 5)."""
+def _normal_equations(
+    wp: _Warp, A: Tensor, e2: Tensor, s: Tensor, robust: DenseRobust, cfg: DenseConfig
+) -> tuple[Tensor, Tensor]:
+    """(B, 6, 6) ``H`` and (B, 6) ``g`` in float64 from the rows of :func:`_jacobian_rows` (module
+    docstring, step 5); ``e2`` from :func:`_scaled_sq` with the scales ``s``."""
     B, _, _, N = A.shape
-    e2 = (wp.rn / s[..., None]).square_()
     W = _weight(e2, robust, cfg).mul_(wp.m).mul_((_term_weights(cfg, s) / (s * s))[..., None])  # (B, 2, N)
     A = A.reshape(B, 7, 2 * N)
     Aw = A * W.reshape(B, 1, 2 * N)
@@ -937,15 +944,16 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             wp = _warp(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
             if prev_cost is not None:
                 # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
-                worse = active & (_cost(wp, s, robust, cfg) > prev_cost)
+                worse = active & (_cost(wp, _scaled_sq(wp, s), robust, cfg) > prev_cost)
                 T = torch.where(worse[:, None, None], T_prev, T)
                 iterations = iterations - worse.to(torch.int64)
                 active = active & ~worse
                 if not bool(active.any()):
                     break
             s = _scale(wp.rn, wp.m, robust, cfg, s)
-            prev_cost = _cost(wp, s, robust, cfg)
-            H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), s, robust, cfg)
+            e2 = _scaled_sq(wp, s)
+            prev_cost = _cost(wp, e2, robust, cfg)
+            H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), e2, s, robust, cfg)
             delta, solved = _solve(H, g)
             step = active & solved
             T_prev = T

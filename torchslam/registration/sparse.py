@@ -54,7 +54,7 @@ from ..features import (
     match_descriptors,
     match_descriptors_batched,
 )
-from ..geometry import PinholeCamera, distort_normalized, se3_exp, umeyama_alignment
+from ..geometry import PinholeCamera, distort_normalized, se3_exp, skew, umeyama_alignment
 from ..geometry.camera import _distortion_jacobian
 from ..optim import RobustKernel, robust_weight
 
@@ -661,7 +661,6 @@ def ransac_rigid_reference(
 
 
 def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: SparseConfig):
-    B = T.shape[0]
     z = p_i[..., 2]
     inv_z2 = torch.where(mask, 1 / torch.where(mask, z * z, torch.ones_like(z)), torch.zeros_like(z))
     eye3 = torch.eye(3, dtype=p_i.dtype, device=p_i.device)
@@ -675,9 +674,7 @@ def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: Sparse
         n = w.sum(-1)
         Q = (w[..., None] * q).sum(1)
         S = (w[..., None] * q).transpose(1, 2) @ q
-        Qx = torch.zeros(B, 3, 3, dtype=q.dtype, device=q.device)
-        Qx[:, 0, 1], Qx[:, 0, 2], Qx[:, 1, 2] = -Q[:, 2], Q[:, 1], -Q[:, 0]
-        Qx = Qx - Qx.transpose(1, 2)
+        Qx = skew(Q)
         Hm = torch.cat(
             [
                 torch.cat([n[:, None, None] * eye3, -Qx], -1),

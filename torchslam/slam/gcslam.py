@@ -197,7 +197,6 @@ class _Optimizer:
         self.loops = {"candidates": 0, "registered": 0, "accepted": 0, "rejected": 0}
         self.stage_ms: dict[str, float] = {}
         self.fastgo_ms: list[float] = []
-        self.loop_log: list[tuple[int, list[int], float, float, bool]] = []
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed + 1)
 
     def _add_ms(self, stage: str, t0: float) -> float:
@@ -277,7 +276,6 @@ class _Optimizer:
             )
             rms_before, rms_after = decision.cost_before**0.5, decision.cost_after**0.5
             accepted = rms_after <= rms_before * (1.0 + cfg.loop_threshold) + cfg.loop_slack_m
-            self.loop_log.append((kf, [candidates[b] for b in group], rms_before, rms_after, accepted))
             if accepted:
                 self.T_wk = list(decision.result.T_wc.unbind(0))
                 for b in group:
@@ -409,7 +407,7 @@ class _TrackKeyframe:
     features: FrameFeatures
     sample_points: Tensor  # (S, 3) float64 keyframe-frame points for the displacement test
     sample_pixels: Tensor  # (S, 2) float64 their pixels in the keyframe
-    dense: Any | None  # the keyframe's dense pyramid (dense front-end)
+    dense: Any | None  # the dense pyramid of the current keyframe only (dense front-end); None for older ones
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
 
@@ -453,7 +451,6 @@ class GCSlam:
         self.frame_geom_time: list[float] = []
         self.frame_kf: list[int] = []
         self.frame_T_kf: list[Tensor] = []
-        self.frame_lost: list[bool] = []
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0}
         self.inliers: list[int] = []
@@ -565,7 +562,6 @@ class GCSlam:
         self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(self.frame_kf[-1])
         self.frame_T_kf.append(self.frame_T_kf[-1])
-        self.frame_lost.append(True)
 
     def _record(self, frame: Frame, kf: int, T_kf: Tensor) -> None:
         self.frame_index.append(frame.index)
@@ -574,7 +570,6 @@ class GCSlam:
         self.frame_kf.append(kf)
         T = T_kf.to(torch.float64)
         self.frame_T_kf.append(T)
-        self.frame_lost.append(False)
         self._last_T_kf = T
 
     def _new_keyframe(self, frame, rgb, depth, feats, dense_frame, reference, T_ref, stats, relocalized: bool = False) -> None:
@@ -600,6 +595,8 @@ class GCSlam:
         if reference is None and self.frame_index:
             anchor = (self.frame_kf[-1], self.frame_T_kf[-1].cpu())
             self.counts["unlinked_keyframes"] += 1
+        if self.keyframes:
+            self.keyframes[-1].dense = None  # only the current keyframe is registered against densely
         self.keyframes.append(
             _TrackKeyframe(kid, frame.index, feats, points[sample], pix, dense_frame, points[m].float(), colors)
         )
