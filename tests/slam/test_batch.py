@@ -5,7 +5,6 @@ import json
 import os
 import subprocess
 import sys
-import types
 
 import pytest
 import yaml
@@ -256,16 +255,15 @@ def test_an_interrupt_between_groups_writes_the_summary(tmp_path):
     assert _summary(tmp_path / "b")["rows"] == result.rows
 
 
-def test_engine_dispatch_uses_lockstep_for_groups_where_available(tmp_path, monkeypatch):
-    monkeypatch.setitem(sys.modules, "torchslam.slam.lockstep", None)  # not part of this installation
-    assert select_engine("nislam", 4)[0] == "sequential"
+def test_engine_dispatch_uses_lockstep_for_groups(tmp_path, monkeypatch):
     groups = []
 
     def run_lockstep(system_cfg, sequences, device, monitors, max_frames):
         groups.append([s.name for s in sequences])
         return run_group("nislam", system_cfg, sequences, device, monitors, max_frames)
 
-    monkeypatch.setitem(sys.modules, "torchslam.slam.lockstep", types.SimpleNamespace(run_lockstep=run_lockstep))
+    monkeypatch.setattr(batch_mod, "run_lockstep", run_lockstep)
+    assert select_engine("nislam", 4)[0] == "lockstep"
     assert select_engine("nislam", 1)[0] == "sequential"
     assert select_engine("gcslam", 4)[0] == "lockstep"
     assert select_engine("gcslam", 1)[0] == "sequential"

@@ -268,7 +268,7 @@ def tum_kcc_pairs(
     frames = {i: seq[first + i] for i in idx}  # decoding files: data set-up
     rgb = torch.stack([frames[i].rgb for i in idx])
     depth = torch.stack([frames[i].depth for i in idx])
-    t_depth = torch.tensor([frames[i].depth_timestamp or frames[i].timestamp for i in idx], dtype=torch.float64)
+    t_depth = torch.tensor([frames[i].geometry_time for i in idx], dtype=torch.float64)
     t_rgb = torch.tensor([frames[i].timestamp for i in idx], dtype=torch.float64)
     T_d, ok_d = seq.groundtruth.interpolate(t_depth, max_gap=0.1)
     T_c, ok_c = seq.groundtruth.interpolate(t_rgb, max_gap=0.1)

@@ -26,6 +26,7 @@ from .pairnet import (
     false_loop_problem,
     pair_features,
     pose_error,
+    rms_translation_error,
     weighted_optimize,
 )
 from .params import LearnableParams, learnable
@@ -296,9 +297,8 @@ def evaluate_pairnet(net: PairWeightNet | None, graphs: list[FalseLoopProblem], 
         T = weighted_optimize(graphs, weights, iterations, unrolled=False)
     w = torch.cat(weights) if weights is not None else torch.ones(sum(len(g.false) for g in graphs), dtype=torch.float64)
     false = torch.cat([g.false for g in graphs])
-    sq = torch.cat([(t[:, :3, 3] - g.T_gt[:, :3, 3]).square().sum(-1) for t, g in zip(T, graphs)])
     return {
-        "rms_m": math.sqrt(float(sq.mean())),
+        "rms_m": rms_translation_error(torch.cat(list(T)), torch.cat([g.T_gt for g in graphs])),
         "pose_error": float(sum(pose_error(t, g.T_gt) for t, g in zip(T, graphs)) / len(graphs)),
         "weight_false": float(w[false].mean()) if bool(false.any()) else math.nan,
         "weight_true": float(w[~false].mean()),
@@ -309,9 +309,7 @@ def _robust_rms(graphs: list[FalseLoopProblem], kernel: str, scale: float, itera
     """RMS position error of FastGO's own robust pair re-weighting (a reference, not learned)."""
     cfg = FastGOConfig(iterations=iterations, robust=kernel, robust_scale=scale)
     res = optimize_batch([FastGOProblem(g.T_init, g.pairs, g.stats) for g in graphs], cfg)
-    off = res.node_offsets.tolist()
-    sq = torch.cat([(res.T_wc[off[b]:off[b + 1], :3, 3] - g.T_gt[:, :3, 3]).square().sum(-1) for b, g in enumerate(graphs)])
-    return math.sqrt(float(sq.mean()))
+    return rms_translation_error(res.T_wc, torch.cat([g.T_gt for g in graphs]))
 
 
 def train_pairnet(cfg: PairNetTrainConfig | None = None, monitor: Monitor | None = None) -> TrainResult:

@@ -6,9 +6,9 @@ gets the run folder ``torchslam run`` writes, ``<out>/<name>/``, and the batch g
 
 Execution. The sequences are cut into groups of ``batch_size`` and each group goes to a group
 runner ``(system, system_cfg, sequences, device, monitors, max_frames) -> [RunResult |
-BaseException]``. The default, :func:`run_group`, runs them one after another. For NI-SLAM with
-``batch_size > 1`` the lockstep runner ``torchslam.slam.lockstep.run_lockstep`` is used where
-this installation has it (the group advances as one ``(B, ...)`` tensor); ``summary.json``
+BaseException]``. The default, :func:`run_group`, runs them one after another. For NI-SLAM and
+GC-SLAM with ``batch_size > 1`` the lockstep runner ``torchslam.slam.lockstep.run_lockstep`` is
+used (the group advances in lockstep, NI-SLAM as one ``(B, ...)`` tensor); ``summary.json``
 records which engine ran.
 
 Resuming. A sequence whose folder already holds a complete run of the same request (see
@@ -32,7 +32,6 @@ from __future__ import annotations
 import copy
 import csv
 import glob
-import importlib
 import io
 import json
 import logging
@@ -60,6 +59,7 @@ from ..data.trajectory import read_tum_trajectory, write_tum_trajectory
 from ..environment import environment_info
 from ..errors import ConfigError, TorchSlamError
 from .base import RunResult, run_sequence
+from .lockstep import run_lockstep
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
 from .registry import get_system
@@ -406,18 +406,8 @@ def run_group(
     return out
 
 
-def _lockstep_runner() -> Callable[..., list] | None:
-    try:
-        module = importlib.import_module("torchslam.slam.lockstep")
-    except ModuleNotFoundError as exc:
-        if exc.name == "torchslam.slam.lockstep":
-            return None
-        raise
-    return getattr(module, "run_lockstep", None)
-
-
 def select_engine(system: str, batch_size: int) -> tuple[str, GroupRunner]:
-    """Choose how groups run: ``("lockstep", ...)`` with B > 1 where available, else sequential.
+    """Choose how groups run: ``("lockstep", ...)`` for NI-SLAM and GC-SLAM with B > 1, else sequential.
 
     NI-SLAM in lockstep batches its per-frame tensor work; GC-SLAM in lockstep solves the pose
     graphs of the group's sequences in one FastGO call per step.
@@ -426,13 +416,11 @@ def select_engine(system: str, batch_size: int) -> tuple[str, GroupRunner]:
         (engine name, group runner with :func:`run_group`'s signature).
     """
     if system in ("nislam", "gcslam") and batch_size > 1:
-        lockstep = _lockstep_runner()
-        if lockstep is not None:
 
-            def run_lockstep_group(system, system_cfg, sequences, device, monitors, max_frames):
-                return lockstep(system_cfg, sequences, device, monitors, max_frames)
+        def run_lockstep_group(system, system_cfg, sequences, device, monitors, max_frames):
+            return run_lockstep(system_cfg, sequences, device, monitors, max_frames)
 
-            return "lockstep", run_lockstep_group
+        return "lockstep", run_lockstep_group
     return "sequential", run_group
 
 
