@@ -151,21 +151,35 @@ def parse_overrides(pairs: list[str] | tuple[str, ...]) -> dict[str, Any]:
             value = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError as exc:
             raise ConfigError(f"--set {key}: cannot parse value {raw!r} ({exc})") from exc
-        node = out
-        parts = key.split(".")
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"--set {key}: {part} is set to a value and used as a section")
-        node[parts[-1]] = value
+        _set_dotted(out, key, value, f"--set {key}")
     return out
 
 
-def _deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+def _set_dotted(out: dict[str, Any], key: str, value: Any, where: str) -> None:
+    """Store ``value`` at the dotted ``key`` ("kcc.sigma") of the nested mapping ``out``."""
+    node = out
+    parts = key.split(".")
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"{where}: {part} is set to a value and used as a section")
+    node[parts[-1]] = value
+
+
+def nest_dotted(values: Mapping[str, Any], where: str = "") -> dict[str, Any]:
+    """``{"kcc.sigma": 0.3}`` as ``{"kcc": {"sigma": 0.3}}``."""
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        _set_dotted(out, key, value, f"{where}{key}")
+    return out
+
+
+def deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` merged in, section by section (neither is modified)."""
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
-            out[k] = _deep_merge(dict(out[k]), v)
+            out[k] = deep_merge(dict(out[k]), v)
         else:
             out[k] = v
     return out
@@ -200,7 +214,7 @@ def load_config(cls: type[C], path: str | os.PathLike | None = None, overrides: 
         # A bad key or value is reported against the layer it came from.
         config_from_dict(cls, data, source=source)
         source = "--set" if source is None else f"{source} + --set"
-        data = _deep_merge(data, over)
+        data = deep_merge(data, over)
     return config_from_dict(cls, data, source=source)
 
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from ..config import config_from_dict, config_to_dict, parse_overrides
+from ..config import config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
@@ -109,7 +109,7 @@ def resolve_config(
         )
 
         values = checkpoint_values(params, spec.config_cls, system)
-        layers.append((str(params), _nest(values)))
+        layers.append((str(params), nest_dotted(values, f"{params}: ")))
     layers.append(("--set", parse_overrides(list(overrides))))
     system_data: dict[str, Any] = {}
     data_data: dict[str, Any] = {}
@@ -118,33 +118,14 @@ def resolve_config(
         layer.pop("system", None)
         d = layer.pop("data", None) or {}
         # Validate each layer on its own so an error names the file or --set it came from.
-        config_from_dict(spec.config_cls, _merge(system_data, layer), source=source)
-        config_from_dict(DataConfig, _merge(data_data, d), source=f"{source} (data)")
-        system_data = _merge(system_data, layer)
-        data_data = _merge(data_data, d)
+        config_from_dict(spec.config_cls, deep_merge(system_data, layer), source=source)
+        config_from_dict(DataConfig, deep_merge(data_data, d), source=f"{source} (data)")
+        system_data = deep_merge(system_data, layer)
+        data_data = deep_merge(data_data, d)
     system_cfg = config_from_dict(spec.config_cls, system_data)
     data_cfg = config_from_dict(DataConfig, data_data)
     resolved = {"system": system, **config_to_dict(system_cfg), "data": config_to_dict(data_cfg)}
     return system_cfg, data_cfg, resolved
-
-
-def _nest(values: dict[str, Any]) -> dict[str, Any]:
-    """``{"kcc.sigma": 0.3}`` as ``{"kcc": {"sigma": 0.3}}``."""
-    out: dict[str, Any] = {}
-    for key, v in values.items():
-        *sections, last = key.split(".")
-        node = out
-        for part in sections:
-            node = node.setdefault(part, {})
-        node[last] = v
-    return out
-
-
-def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    out = dict(a)
-    for k, v in b.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 def load_sequence(data: str, cfg: DataConfig) -> Sequence:
