@@ -33,7 +33,7 @@ from .correlator import (
     soft_argmax,
     spectral_energy,
 )
-from .fusion import DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
+from .fusion import DepthStatistic, DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
 from .ortho import (
     OrthoImages,
     choose_resolution,
@@ -46,6 +46,7 @@ from .ortho import (
 
 __all__ = [
     "ChannelNorm",
+    "DepthStatistic",
     "DepthTranslation",
     "KCCConfig",
     "KCCFilter",

@@ -49,6 +49,7 @@ from torch import Tensor, nn
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
 from ._select import where
+from .fusion import DepthStatistic
 
 __all__ = [
     "ChannelNorm",
@@ -163,19 +164,18 @@ class KCCConfig:
     channel_norm: ChannelNorm = ChannelNorm.STANDARDIZE
     fill_holes: int = 3
     depth_median_center: bool = False
-    depth_statistic: str = "mean"
+    depth_statistic: DepthStatistic = DepthStatistic.MEAN
     soft_argmax: bool = False
     temperature: float = 0.02
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "subpixel", _enum(Subpixel, self.subpixel, "subpixel"))
         object.__setattr__(self, "channel_norm", _enum(ChannelNorm, self.channel_norm, "channel_norm"))
+        object.__setattr__(self, "depth_statistic", _enum(DepthStatistic, self.depth_statistic, "depth_statistic"))
         for key in ("sigma", "lam", "T_c", "T_d", "subpixel_smoothing", "temperature"):
             value = getattr(self, key)
             if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
                 raise ConfigError(f"{key}: expected a positive number, got {value!r}")
-        if self.depth_statistic not in ("mean", "median"):
-            raise ConfigError(f"depth_statistic: expected 'mean' or 'median', got {self.depth_statistic!r}")
         if not self.T_M > self.T_K:
             raise ConfigError(f"T_M: expected T_M > T_K (the paper's condition), got T_M={self.T_M}, T_K={self.T_K}")
         for key in ("ortho_height", "ortho_width", "sample_step", "subpixel_iterations"):

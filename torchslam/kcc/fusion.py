@@ -15,17 +15,18 @@ Convention:
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, DTypeError, check_float, check_shape
+from ..errors import DTypeError, check_float, check_shape, parse_choice
 from ._select import where
 from .ortho import OrthoImages
 
-__all__ = ["DepthTranslation", "KeyframeMap", "depth_translation", "fuse_keyframe", "keyframe_map", "shift_image"]
+__all__ = ["DepthStatistic", "DepthTranslation", "KeyframeMap", "depth_translation", "fuse_keyframe", "keyframe_map", "shift_image"]
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,11 @@ def _masked_lower_median(values: Tensor, mask: Tensor) -> Tensor:
     return torch.nan_to_num(flat.nanmedian(dim=1).values, nan=0.0)
 
 
-DEPTH_STATISTICS = ("mean", "median")
+class DepthStatistic(str, enum.Enum):
+    """How ``depth_translation`` reduces the well-matched depth differences to ``t_z``."""
+
+    MEAN = "mean"  # the paper, Eq. (21)
+    MEDIAN = "median"
 
 
 def depth_translation(
@@ -149,7 +154,7 @@ def depth_translation(
     T_c: float = 0.1,
     T_d: float = 0.1,
     median_center: bool = False,
-    statistic: str = "mean",
+    statistic: DepthStatistic | str = DepthStatistic.MEAN,
 ) -> DepthTranslation:
     """Estimate the translation along the optical axis from well-matched pixels (NI-SLAM Eq. (20)–(21)).
 
@@ -180,8 +185,7 @@ def depth_translation(
     Returns:
         DepthTranslation; never NaN (see its fields for the empty case).
     """
-    if statistic not in DEPTH_STATISTICS:
-        raise ConfigError(f"statistic: expected one of {', '.join(map(repr, DEPTH_STATISTICS))}, got {statistic!r}")
+    statistic = parse_choice(DepthStatistic, statistic, "statistic")
     dims: dict[str, int] = {}
     _views(frame, "frame", dims)
     zg, zd, zv = _views(keyframe, "keyframe", dims)
@@ -196,7 +200,7 @@ def depth_translation(
     m = matched.to(diff.dtype)
     count = matched.sum(dim=(1, 2))
     n = count.to(diff.dtype).clamp_min(1.0)
-    if statistic == "median":
+    if statistic is DepthStatistic.MEDIAN:
         t_z = _masked_lower_median(diff, matched)
     else:
         t_z = (diff * m).sum(dim=(1, 2)) / n
