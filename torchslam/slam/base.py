@@ -79,6 +79,15 @@ class RunResult:
     compute_s: float
     interrupted: bool
 
+    @classmethod
+    def of(cls, sequence, output: SystemOutput, processed: int, wall_s: float, compute_s: float, interrupted: bool) -> "RunResult":
+        """The result of a run over ``sequence``; the frames it skipped come from the sequence."""
+        skipped = list(getattr(sequence, "skipped", []))
+        return cls(
+            output=output, frames_total=len(sequence), frames_processed=processed, frames_skipped=len(skipped),
+            skipped=skipped, wall_s=wall_s, compute_s=compute_s, interrupted=interrupted,
+        )
+
     @property
     def fps_end_to_end(self) -> float:
         return self.frames_processed / self.wall_s if self.wall_s > 0 else 0.0
@@ -131,17 +140,7 @@ def run_sequence(
     output = system.finish()
     t_end = time.perf_counter()
     compute_s += t_end - t0
-    skipped = list(getattr(sequence, "skipped", []))
-    return RunResult(
-        output=output,
-        frames_total=len(sequence),
-        frames_processed=processed,
-        frames_skipped=len(skipped),
-        skipped=skipped,
-        wall_s=t_end - t_start,
-        compute_s=compute_s,
-        interrupted=interrupted,
-    )
+    return RunResult.of(sequence, output, processed, t_end - t_start, compute_s, interrupted)
 
 
 def empty_output(dtype: torch.dtype = torch.float64) -> SystemOutput:

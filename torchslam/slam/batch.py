@@ -62,6 +62,7 @@ from .base import RunResult, run_sequence
 from .lockstep import run_lockstep
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
+from .progress import log_hparams
 from .registry import get_system
 from .run import SYNTHETIC, DataConfig, load_sequence, resolve_config
 
@@ -527,10 +528,7 @@ def _finish_sequence(
         write_tum_trajectory(folder / GROUNDTRUTH_FILE, sequence.groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
         extra["groundtruth_file"] = GROUNDTRUTH_FILE
     metrics = write_run(folder, system, result, sequence, config=config, extra=extra)
-    monitor.hparams(
-        {k: v for k, v in config.items() if not isinstance(v, dict)},
-        {k: v for k, v in metrics.items() if k in ("ate_rmse_m", "fps_end_to_end", "keyframes") and v is not None},
-    )
+    log_hparams(monitor, config, metrics)
     return metrics
 
 

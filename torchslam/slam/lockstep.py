@@ -187,15 +187,5 @@ def run_lockstep(
             continue
         # Only a Ctrl-C before its start leaves a sequence without output: it computed nothing.
         output = outputs[i] if outputs[i] is not None else empty_output()
-        skipped = list(getattr(seq, "skipped", []))
-        results.append(RunResult(
-            output=output,
-            frames_total=len(seq),
-            frames_processed=processed[i],
-            frames_skipped=len(skipped),
-            skipped=skipped,
-            wall_s=wall_s,
-            compute_s=compute[i],
-            interrupted=interrupted,
-        ))
+        results.append(RunResult.of(seq, output, processed[i], wall_s, compute[i], interrupted))
     return results

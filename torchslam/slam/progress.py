@@ -64,6 +64,14 @@ def progress_callback(system: Any, sequence: Sequence, monitor: Monitor, every: 
     return on_frame
 
 
+def log_hparams(monitor: Monitor, config: dict, metrics: dict) -> None:
+    """The run's scalar config values as hparams, with its headline metrics (ATE, frames/s, keyframes)."""
+    monitor.hparams(
+        {k: v for k, v in config.items() if not isinstance(v, dict)},
+        {k: v for k, v in metrics.items() if k in ("ate_rmse_m", "fps_end_to_end", "keyframes") and v is not None},
+    )
+
+
 def log_final(monitor: Monitor, output: SystemOutput, sequence: Sequence, name: str, step: int) -> None:
     """Log the top view of the final trajectory against the ground truth as an image."""
     if len(output.T_wc) < 2:

@@ -20,7 +20,7 @@ from ..errors import ConfigError
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
-from .progress import log_final, progress_callback
+from .progress import log_final, log_hparams, progress_callback
 from .registry import get_system
 
 __all__ = ["DataConfig", "RunOptions", "load_sequence", "resolve_config", "run"]
@@ -168,10 +168,7 @@ def run(
         if options.params is not None:
             extra["params"] = str(options.params)
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)
-        monitor.hparams(
-            {k: v for k, v in resolved.items() if not isinstance(v, dict)},
-            {k: v for k, v in metrics.items() if k in ("ate_rmse_m", "fps_end_to_end", "keyframes") and v is not None},
-        )
+        log_hparams(monitor, resolved, metrics)
     finally:
         monitor.close()
     return metrics
