@@ -143,6 +143,13 @@ def run_sequence(
     return RunResult.of(sequence, output, processed, t_end - t_start, compute_s, interrupted)
 
 
+def add_stage_ms(stage_ms: dict[str, float], stage: str, t0: float) -> float:
+    """Add the milliseconds since ``t0`` (``time.perf_counter``) to ``stage_ms[stage]``; return now."""
+    t1 = time.perf_counter()
+    stage_ms[stage] = stage_ms.get(stage, 0.0) + 1000.0 * (t1 - t0)
+    return t1
+
+
 def empty_output(dtype: torch.dtype = torch.float64) -> SystemOutput:
     """An output with no frames (a system that was stopped before its first frame)."""
     return SystemOutput(

@@ -70,7 +70,7 @@ from ..registration.sparse import (
     register_sparse,
     register_sparse_batch,
 )
-from .base import StepReport, SystemOutput, empty_output, frame_poses, resample_poses
+from .base import StepReport, SystemOutput, add_stage_ms, empty_output, frame_poses, resample_poses
 from .monitor import Monitor
 from .outputs import voxel_downsample
 from .registry import SystemSpec
@@ -200,9 +200,7 @@ class _Optimizer:
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed + 1)
 
     def _add_ms(self, stage: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + 1000.0 * (t1 - t0)
-        return t1
+        return add_stage_ms(self.stage_ms, stage, t0)
 
     def _fastgo_config(self, iterations: int) -> FastGOConfig:
         return FastGOConfig(iterations=iterations)
@@ -461,9 +459,7 @@ class GCSlam:
         self._inline_s = 0.0
 
     def _toc(self, stage: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + 1000.0 * (t1 - t0)
-        return t1
+        return add_stage_ms(self.stage_ms, stage, t0)
 
     # ------------------------------------------------------------------ tracking
     def track(self, frame: Frame) -> None:

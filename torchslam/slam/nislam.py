@@ -72,7 +72,7 @@ from ..kcc import (
 )
 from ..loop import MILDConfig, MILDDatabase
 from ..optim import LMConfig
-from .base import StepReport, SystemOutput, frame_poses, resample_poses
+from .base import StepReport, SystemOutput, add_stage_ms, frame_poses, resample_poses
 from .monitor import Monitor
 from .outputs import voxel_downsample
 from .registry import SystemSpec
@@ -414,9 +414,7 @@ class NISlam:
         return time.perf_counter()
 
     def _toc(self, stage: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + 1000.0 * (t1 - t0)
-        return t1
+        return add_stage_ms(self.stage_ms, stage, t0)
 
     # ------------------------------------------------------------------ tracking
     def track(self, frame: Frame) -> None:
