@@ -205,6 +205,10 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
                 monitor.scalars(ev_tum, step, prefix="tum/")
                 history[-1].update({f"tum/{k}": x for k, x in ev_tum.items()})
         if step == cfg.steps:
+            # The last evaluation is of the learned values: it is the result.
+            metrics["val_learned"] = ev
+            if tum is not None:
+                metrics["tum_learned"] = ev_tum
             break
         batch = train
         if 0 < cfg.batch_size < len(train):
@@ -220,9 +224,6 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
         metrics["train_loss_last"] = loss
     learned = floats(params)
     metrics["learned"] = learned
-    metrics["val_learned"] = evaluate_kcc(val, kcc_cfg, **learned)
-    if tum is not None:
-        metrics["tum_learned"] = evaluate_kcc(tum, kcc_cfg, **learned)
     with torch.no_grad():
         metrics["train_loss_default"] = float(kcc_shift_loss(train, **default, cfg=kcc_cfg).loss)
         metrics["train_loss_learned"] = float(kcc_shift_loss(train, **learned, cfg=kcc_cfg).loss)
@@ -346,6 +347,7 @@ def train_pairnet(cfg: PairNetTrainConfig | None = None, monitor: Monitor | None
             monitor.scalars(ev, step, prefix="val/")
             history.append({"step": step, **{f"val/{k}": x for k, x in ev.items()}})
         if step == cfg.steps:
+            metrics["val_learned"] = ev  # the last evaluation is of the trained network
             break
         idx = list(range(len(train)))
         if 0 < cfg.batch_size < len(train):
@@ -364,7 +366,6 @@ def train_pairnet(cfg: PairNetTrainConfig | None = None, monitor: Monitor | None
         if step == 0:
             metrics["train_loss_first"] = float(loss.detach())
         metrics["train_loss_last"] = float(loss.detach())
-    metrics["val_learned"] = evaluate_pairnet(net, val, cfg.eval_iterations)
     metrics["train_rms_unit_m"] = evaluate_pairnet(None, train, cfg.eval_iterations)["rms_m"]
     metrics["train_rms_learned_m"] = evaluate_pairnet(net, train, cfg.eval_iterations)["rms_m"]
     monitor.hparams({"hidden": cfg.hidden, "unroll": cfg.unroll, "lr": cfg.lr},
