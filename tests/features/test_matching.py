@@ -201,8 +201,8 @@ def test_match_rules_equal_loop_reference(backend, mutual, ratio, max_distance):
     assert len(ref) > 10  # the rules are exercised, not vacuous
 
 
-@pytest.mark.parametrize("kernel", ["swar", "lut", "matmul"])
-def test_batched_matching_with_padding_equals_per_pair(kernel):
+@pytest.mark.parametrize("kernel,backend", [("swar", "torch"), ("lut", "torch"), ("matmul", "torch"), ("swar", "opencv")])
+def test_batched_matching_with_padding_equals_per_pair(kernel, backend):
     gen = torch.Generator().manual_seed(7)
     sets1, sets2 = [], []
     for k1, k2 in [(40, 60), (0, 10), (25, 1), (60, 33), (10, 0)]:
@@ -214,7 +214,8 @@ def test_batched_matching_with_padding_equals_per_pair(kernel):
     # Garbage in the padding must not matter.
     p2 = torch.where(v2[..., None], p2, torch.zeros_like(p2))
     for mutual, ratio in [(False, None), (True, 0.9)]:
-        res = match_descriptors_batched(p1, p2, v1, v2, max_distance=60, mutual=mutual, ratio=ratio, kernel=kernel)
+        res = match_descriptors_batched(p1, p2, v1, v2, max_distance=60, mutual=mutual, ratio=ratio, kernel=kernel,
+                                        backend=backend)
         assert res.index.shape == p1.shape[:2]
         for b in range(len(sets1)):
             ref = _np_match(sets1[b].numpy(), sets2[b].numpy(), 60, mutual, ratio) if len(sets2[b]) else []

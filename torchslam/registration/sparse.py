@@ -51,7 +51,6 @@ from ..features import (
     MatchBackend,
     ORBConfig,
     extract_orb,
-    match_descriptors,
     match_descriptors_batched,
 )
 from ..geometry import PinholeCamera, distort_normalized, se3_exp, skew, umeyama_alignment
@@ -747,31 +746,14 @@ def _match(fi: Sequence[FrameFeatures], fj: Sequence[FrameFeatures], cfg: Sparse
 
     Only keypoints with valid depth take part; frame j's keypoints are the queries.
     """
-    B = len(fi)
-    kj = max(len(f) for f in fj)
-    backend = cfg.match_backend
-    if backend is MatchBackend.AUTO:
-        backend = MatchBackend.OPENCV if dev.type == "cpu" else MatchBackend.TORCH
-    if backend is MatchBackend.TORCH:
-        ki = max(len(f) for f in fi)
-        if ki == 0 or kj == 0:
-            return torch.full((B, kj), -1, dtype=torch.int64, device=dev)
-        di = _pad([f.descriptors for f in fi], ki)
-        dj = _pad([f.descriptors for f in fj], kj)
-        vi = _pad([f.valid for f in fi], ki, False)
-        vj = _pad([f.valid for f in fj], kj, False)
-        return match_descriptors_batched(dj, di, vj, vi, max_distance=cfg.max_distance).index
-    index = torch.full((B, kj), -1, dtype=torch.int64, device=dev)
-    for b in range(B):  # OpenCV matches one pair per call
-        rows_i = torch.nonzero(fi[b].valid).squeeze(-1)
-        rows_j = torch.nonzero(fj[b].valid).squeeze(-1)
-        if rows_i.numel() == 0 or rows_j.numel() == 0:
-            continue
-        m = match_descriptors(
-            fj[b].descriptors[rows_j], fi[b].descriptors[rows_i], max_distance=cfg.max_distance, backend=MatchBackend.OPENCV
-        ).pairs
-        index[b, rows_j[m[:, 0]]] = rows_i[m[:, 1]]
-    return index
+    ki, kj = max(len(f) for f in fi), max(len(f) for f in fj)
+    if ki == 0 or kj == 0:
+        return torch.full((len(fi), kj), -1, dtype=torch.int64, device=dev)
+    di = _pad([f.descriptors for f in fi], ki)
+    dj = _pad([f.descriptors for f in fj], kj)
+    vi = _pad([f.valid for f in fi], ki, False)
+    vj = _pad([f.valid for f in fj], kj, False)
+    return match_descriptors_batched(dj, di, vj, vi, max_distance=cfg.max_distance, backend=cfg.match_backend).index
 
 
 def _check_features(f, name: str) -> None:
