@@ -8,6 +8,7 @@ from .camera import (
     intrinsics_matrix,
     project_points,
     scale_intrinsics,
+    undistort_pixels,
     undistorted_rays,
 )
 from .lie import (
@@ -50,6 +51,7 @@ __all__ = [
     "so3_exp",
     "so3_log",
     "umeyama_alignment",
+    "undistort_pixels",
     "undistorted_rays",
     "vex",
 ]

@@ -216,6 +216,36 @@ def undistorted_rays(
     return xy.to(dtype=dtype, device=device, copy=True)
 
 
+def undistort_pixels(uv: Tensor, camera: PinholeCamera, newton_steps: int = 8) -> Tensor:
+    """Ideal normalised rays (K, 2) float64 of pixels ``uv`` (K, 2) through the lens model.
+
+    OpenCV's iterative ``undistortPoints`` gives the start; ``newton_steps`` Newton steps on the
+    forward model (``distort_normalized``, analytic 2x2 Jacobian, closed-form solve) finish it to
+    float64 precision. Where the Jacobian is singular (a fold of the model) the step is skipped.
+    """
+    uv = uv.to(torch.float64)
+    xd = torch.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], -1)
+    if uv.shape[0] == 0 or not camera.has_distortion:
+        return xd
+    import cv2  # only distorted cameras need OpenCV; keep it out of the geometry import
+
+    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    d = np.asarray(camera.distortion, dtype=np.float64)
+    start = cv2.undistortPoints(uv.cpu().numpy().reshape(-1, 1, 2), K, d, None, None, None, criteria)
+    xy = torch.from_numpy(np.ascontiguousarray(start.reshape(-1, 2), dtype=np.float64)).to(uv.device)
+    for _ in range(newton_steps):
+        res = distort_normalized(xy, camera.distortion) - xd
+        J = _distortion_jacobian(xy, camera.distortion)  # (K, 2, 2)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, math.inf))  # a fold: no step
+        step = torch.stack(
+            [J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1], J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], dim=-1
+        )
+        xy = xy - step / det[:, None]
+    return xy
+
+
 def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
     """float64 CPU (N, 2) undistorted rays of the pixels ``[::step, ::step]`` (``undistorted_rays``)."""
     xd = _pinhole_rays(camera, torch.float64, "cpu", step)  # distorted normalised coordinates of the pixels
@@ -224,23 +254,8 @@ def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
         torch.arange(0, camera.width, step, dtype=torch.float64),
         indexing="ij",
     )
-    import cv2  # only distorted cameras need OpenCV; keep it out of the geometry import
-
-    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
-    pix = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).numpy().reshape(-1, 1, 2)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    d = np.asarray(camera.distortion, dtype=np.float64)
-    start = cv2.undistortPoints(pix, K, d, None, None, None, criteria).reshape(-1, 2)
-    xy = torch.from_numpy(np.ascontiguousarray(start, dtype=np.float64))
-    for _ in range(8):
-        res = distort_normalized(xy, camera.distortion) - xd
-        J = _distortion_jacobian(xy, camera.distortion)  # (N, 2, 2)
-        # Closed-form 2x2 solve; a singular Jacobian (a fold) gives inf/NaN, caught below.
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        step = torch.stack(
-            [J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1], J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], dim=-1
-        )
-        xy = xy - step / det[:, None]
+    pix = torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1)
+    xy = undistort_pixels(pix, camera, newton_steps=8)
     err_px = ((distort_normalized(xy, camera.distortion) - xd) * xd.new_tensor([camera.fx, camera.fy])).abs().max()
     if not bool(torch.isfinite(err_px)) or float(err_px) > 1e-6:
         raise ShapeError(f"camera: lens distortion {camera.distortion} cannot be inverted over the image (residual {float(err_px):.3g} px)")

@@ -39,13 +39,12 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
 from torch.nn.utils.rnn import pad_sequence
 
-from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
+from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..features import (
     MatchBackend,
@@ -53,8 +52,7 @@ from ..features import (
     extract_orb,
     match_descriptors_batched,
 )
-from ..geometry import PinholeCamera, distort_normalized, se3_exp, skew, umeyama_alignment
-from ..geometry.camera import _distortion_jacobian
+from ..geometry import PinholeCamera, se3_exp, skew, umeyama_alignment, undistort_pixels
 from ..optim import RobustKernel, robust_weight
 
 __all__ = [
@@ -151,12 +149,7 @@ class SparseConfig:
             raise ConfigError(f"SparseConfig.max_depth: expected > min_depth={self.min_depth}, got {self.max_depth}")
         if not is_int(self.seed):
             raise ConfigError(f"SparseConfig.seed: expected an integer, got {self.seed!r}")
-        if not isinstance(self.match_backend, MatchBackend):
-            try:
-                object.__setattr__(self, "match_backend", MatchBackend(self.match_backend))
-            except ValueError:
-                valid = [m.value for m in MatchBackend]
-                raise ConfigError(f"SparseConfig.match_backend: {self.match_backend!r} is not one of {valid}") from None
+        object.__setattr__(self, "match_backend", parse_choice(MatchBackend, self.match_backend, "SparseConfig.match_backend"))
 
 
 @dataclass(frozen=True)
@@ -243,32 +236,6 @@ class SparseResult:
 # ---------------------------------------------------------------------------- features
 
 
-def _undistort_pixels(uv: Tensor, camera: PinholeCamera) -> Tensor:
-    """Ideal normalised rays (K, 2) float64 of pixels (K, 2) float64 through the lens model.
-
-    OpenCV's iterative inversion gives the start; Newton steps on the forward model
-    (``distort_normalized``, analytic Jacobian) finish it to float64 precision.
-    """
-    xd = torch.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], -1)
-    if uv.shape[0] == 0:
-        return xd
-    K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-    d = np.asarray(camera.distortion, dtype=np.float64)
-    start = cv2.undistortPoints(uv.cpu().numpy().reshape(-1, 1, 2), K, d, None, None, None, criteria)
-    xy = torch.from_numpy(np.ascontiguousarray(start.reshape(-1, 2), dtype=np.float64)).to(uv.device)
-    for _ in range(3):
-        res = distort_normalized(xy, camera.distortion) - xd
-        J = _distortion_jacobian(xy, camera.distortion)
-        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-        det = torch.where(det.abs() > 1e-12, det, torch.ones_like(det))
-        step = torch.stack(
-            [J[:, 1, 1] * res[:, 0] - J[:, 0, 1] * res[:, 1], J[:, 0, 0] * res[:, 1] - J[:, 1, 0] * res[:, 0]], -1
-        )
-        xy = xy - step / det[:, None]
-    return xy
-
-
 def _interpolate_rays(grid: Tensor, uv: Tensor) -> Tensor:
     """Bilinear interpolation of an (H, W, 2) ray grid at (K, 2) pixel positions (clamped inside)."""
     H, W = grid.shape[:2]
@@ -341,7 +308,7 @@ def frame_features(
         check_shape(rays, f"{H * W} 2", "rays")
         xy = _interpolate_rays(rays.to(torch.float64).view(H, W, 2), uv)
     elif camera.has_distortion:
-        xy = _undistort_pixels(uv, camera)
+        xy = undistort_pixels(uv, camera, newton_steps=3)
     else:
         xy = torch.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], -1)
     z = torch.where(valid, z, torch.zeros_like(z))
