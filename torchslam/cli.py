@@ -21,6 +21,15 @@ logger = logging.getLogger("torchslam")
 DEFAULT_SYSTEM = "nislam"
 
 
+def _config_help() -> str:
+    from .config import preset_names
+
+    return (
+        "YAML file overriding the system's defaults, or the name of a shipped preset: "
+        + ", ".join(preset_names())
+    )
+
+
 def _add_run(sub) -> None:
     from .slam.registry import KNOWN_SYSTEMS
 
@@ -28,7 +37,7 @@ def _add_run(sub) -> None:
     p.add_argument("--system", default=DEFAULT_SYSTEM, help=f"one of {', '.join(KNOWN_SYSTEMS)} (default {DEFAULT_SYSTEM})")
     p.add_argument("--data", default="synthetic", help="a TUM-layout folder, or 'synthetic' (default) for the built-in sequence")
     p.add_argument("--out", default=None, help="run folder (default logs/<system>-<data>-<time>)")
-    p.add_argument("--config", default=None, help="YAML file overriding the system's defaults (see configs/)")
+    p.add_argument("--config", default=None, metavar="FILE|PRESET", help=_config_help())
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set sigma=0.3 or --set data.stride=2 (repeatable)")
     p.add_argument("--params", default=None, metavar="CKPT",
@@ -91,7 +100,7 @@ def _add_batch(sub) -> None:
     p.add_argument("--out", required=True, help="batch folder: one run folder per sequence plus summary.{md,csv,json}")
     p.add_argument("--batch-size", type=int, default=1,
                    help="sequences per group; NI-SLAM groups run in lockstep where available (default 1)")
-    p.add_argument("--config", default=None, help="YAML file overriding the system's defaults (see configs/)")
+    p.add_argument("--config", default=None, metavar="FILE|PRESET", help=_config_help())
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set data.synthetic.frames=100 (repeatable)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")

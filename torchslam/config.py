@@ -1,6 +1,7 @@
 """Configuration: frozen dataclass defaults in code, YAML files and ``key=value`` overrides on top.
 
-A config is a (possibly nested) frozen dataclass. YAML files in ``configs/`` and command-line
+A config is a (possibly nested) frozen dataclass. YAML files (the presets shipped in
+``torchslam/presets/``, or any file) and command-line
 ``--set key=value`` pairs only override fields that exist; an unknown key is an error that names
 the key (and the file). The resolved config is saved with every run.
 """
@@ -19,7 +20,15 @@ import yaml
 
 from .errors import ConfigError
 
-__all__ = ["config_from_dict", "config_to_dict", "load_config", "parse_overrides", "save_config"]
+__all__ = [
+    "config_file",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "parse_overrides",
+    "preset_names",
+    "save_config",
+]
 
 C = TypeVar("C")
 
@@ -221,3 +230,35 @@ def load_config(cls: type[C], path: str | os.PathLike | None = None, overrides: 
 def save_config(cfg: Any, path: str | os.PathLike) -> None:
     """Write the resolved config as YAML."""
     Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+
+
+PRESET_SUFFIX = ".yaml"
+
+
+def _presets_dir() -> Path:
+    return Path(__file__).resolve().parent / "presets"
+
+
+def preset_names() -> list[str]:
+    """The config presets shipped inside the package (``torchslam/presets/*.yaml``), sorted."""
+    return sorted(p.stem for p in _presets_dir().glob(f"*{PRESET_SUFFIX}"))
+
+
+def config_file(name_or_path: str | os.PathLike) -> Path:
+    """Resolve a ``--config`` argument: an existing file, else the name of a shipped preset.
+
+    ``nislam_fast`` and ``nislam_fast.yaml`` both name the preset; a path that exists always wins
+    over a preset of the same name.
+
+    Raises:
+        ConfigError: when the argument is neither an existing file nor a preset; the message lists
+            the presets.
+    """
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    text = str(name_or_path)
+    stem = text[: -len(PRESET_SUFFIX)] if text.endswith(PRESET_SUFFIX) else text
+    if stem in preset_names():
+        return _presets_dir() / f"{stem}{PRESET_SUFFIX}"
+    raise ConfigError(f"--config {text}: no such file, and not a preset (presets: {', '.join(preset_names())})")

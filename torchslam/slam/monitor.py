@@ -54,8 +54,14 @@ class TensorBoardMonitor(Monitor):
     @property
     def _writer(self):
         if self._w is None:
-            from torch.utils.tensorboard import SummaryWriter  # imported lazily: heavy
-
+            try:
+                from torch.utils.tensorboard import SummaryWriter  # imported lazily: heavy
+            except ImportError as exc:
+                # TensorBoard is optional at run time: without it the monitor records nothing,
+                # says so once, and the run's own results are unaffected.
+                logger.warning("TensorBoard events not written: %s (install tensorboard to get them)", exc)
+                self._w = _NullWriter()
+                return self._w
             self._w = SummaryWriter(self.logdir)
         return self._w
 
@@ -77,6 +83,13 @@ class TensorBoardMonitor(Monitor):
         if self._w is not None:
             self._w.flush()
             self._w.close()
+
+
+class _NullWriter:
+    """Stands in for ``SummaryWriter`` when TensorBoard is not installed: every call does nothing."""
+
+    def __getattr__(self, name: str):
+        return lambda *args, **kwargs: None
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from ..config import config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides
+from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
@@ -91,7 +91,7 @@ def resolve_config(
     spec = get_system(system)
     layers: list[tuple[str, dict[str, Any]]] = []
     if config_path is not None:
-        path = Path(config_path)
+        path = config_file(config_path)
         try:
             loaded = yaml.safe_load(path.read_text())
         except OSError as exc:
@@ -161,13 +161,14 @@ def run(
         system = spec.build(system_cfg, device=options.device, monitor=monitor)
         on_frame = progress_callback(system, sequence, monitor, every=options.monitor_every) if options.tensorboard else None
         result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames, on_frame=on_frame)
-        if options.tensorboard:
-            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
         resolved["device"] = options.device
         extra = {"device": options.device, "data": options.data}
         if options.params is not None:
             extra["params"] = str(options.params)
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)
+        # The results are on disk; what follows only adds TensorBoard figures.
+        if options.tensorboard:
+            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
         log_hparams(monitor, resolved, metrics)
     finally:
         monitor.close()
