@@ -45,7 +45,9 @@ def evaluate(seq: Path, system: str, frontend: str | None, runs: Path, max_frame
     label = f"{system}-{frontend}" if frontend else system
     out = runs / f"{seq.name}-{label}"
     overrides = [] if frontend is None else [f"frontend={frontend}", f"threaded={str(threaded).lower()}"]
-    m = run(RunOptions(system=system, data=str(seq), out=out, tensorboard=False, max_frames=max_frames), overrides=overrides)
+    # The script owns its run folders and refreshes them on every call.
+    options = RunOptions(system=system, data=str(seq), out=out, tensorboard=False, max_frames=max_frames, overwrite=True)
+    m = run(options, overrides=overrides)
     ate = m.get("ate_rmse_m")
     loops = m.get("loops", {})
     row = {

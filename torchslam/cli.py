@@ -33,10 +33,20 @@ def _config_help() -> str:
 def _add_run(sub) -> None:
     from .slam.registry import KNOWN_SYSTEMS
 
-    p = sub.add_parser("run", help="run a SLAM system on a sequence and write a run folder")
+    p = sub.add_parser(
+        "run", help="run a SLAM system on a sequence and write a run folder",
+        description="Exit status: 0 when the run folder is written, 1 when some output file could not be "
+        "written (the others are kept), 2 for a bad argument, config, data or --out (checked before tracking), "
+        "130 when interrupted (the partial run is written, marked interrupted).",
+    )
     p.add_argument("--system", default=DEFAULT_SYSTEM, help=f"one of {', '.join(KNOWN_SYSTEMS)} (default {DEFAULT_SYSTEM})")
     p.add_argument("--data", default="synthetic", help="a TUM-layout folder, or 'synthetic' (default) for the built-in sequence")
-    p.add_argument("--out", default=None, help="run folder (default logs/<system>-<data>-<time>)")
+    p.add_argument("--out", default=None,
+                   help="run folder, missing or empty (default logs/<system>-<data>-<time>, a new folder)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="clear a non-empty --out first; refused unless it holds only files a run writes "
+                   "(trajectory.txt, keyframes.txt, map.ply, metrics.json, config.yaml, groundtruth.txt, error.txt, "
+                   "TensorBoard events)")
     p.add_argument("--config", default=None, metavar="FILE|PRESET", help=_config_help())
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set sigma=0.3 or --set data.stride=2 (repeatable)")
@@ -63,7 +73,7 @@ def _cmd_run(args) -> int:
     options = RunOptions(
         system=args.system, data=args.data, out=out, device=args.device,
         tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
-        params=Path(args.params) if args.params else None,
+        params=Path(args.params) if args.params else None, overwrite=args.overwrite,
     )
     progress = None
     if not args.no_progress:
@@ -72,7 +82,13 @@ def _cmd_run(args) -> int:
         def progress(frames):
             return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False)
 
-    metrics = run(options, config_path=args.config, overrides=args.overrides, progress=progress)
+    from .slam.runfolder import OutputWriteError
+
+    try:
+        metrics = run(options, config_path=args.config, overrides=args.overrides, progress=progress)
+    except OutputWriteError as exc:  # the run was computed; what could be written is kept
+        print(f"torchslam run: error: {exc}", file=sys.stderr)
+        return 1
     ate_m = metrics.get("ate_rmse_m")
     ate_txt = f"{ate_m * 100:.2f} cm" if ate_m is not None else "n/a (no ground truth)"
     status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
@@ -82,7 +98,7 @@ def _cmd_run(args) -> int:
         f"{metrics['fps_end_to_end']:.1f} frames/s end-to-end ({metrics['fps_compute']:.1f} compute-only)"
     )
     print(f"run folder: {out}")
-    return 0
+    return 130 if metrics.get("interrupted") else 0
 
 
 def _add_batch(sub) -> None:
@@ -92,7 +108,8 @@ def _add_batch(sub) -> None:
         "batch",
         help="run a SLAM system on many sequences (resumable; shards over torchrun) and write a summary",
         description="Exit status: 0 when every sequence is ok or resumed, 1 when any failed, "
-        "2 for a bad argument or config (nothing runs), 130 when interrupted.",
+        "2 for a bad argument or config, a folder holding a complete run of another request without "
+        "--overwrite, or --out in use by another batch (nothing runs), 130 when interrupted.",
     )
     p.add_argument("sources", nargs="+", metavar="SOURCE",
                    help="a TUM-layout folder, a glob of folders (quoted), 'synthetic' or 'synthetic:K' for K generated sequences")
@@ -106,6 +123,10 @@ def _add_batch(sub) -> None:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
     p.add_argument("--max-frames", type=int, default=None, help="stop each sequence after this many frames")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
+    p.add_argument("--overwrite", action="store_true",
+                   help="redo sequences whose folders hold a complete run of another request (system, data, "
+                   "config, --max-frames); without it such a batch is refused. Each old run is replaced only "
+                   "once its new run is written")
 
 
 def _cmd_batch(args) -> int:
@@ -118,6 +139,7 @@ def _cmd_batch(args) -> int:
     options = BatchOptions(
         system=args.system, sources=tuple(args.sources), out=Path(args.out), batch_size=args.batch_size,
         device=args.device, tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
+        overwrite=args.overwrite,
     )
     rank = f"[rank {os.environ['RANK']}] " if "RANK" in os.environ and os.environ.get("WORLD_SIZE", "1") != "1" else ""
 

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from torchslam.data import (
     INTRINSICS_PRESETS,
     CorruptImageError,
+    ImageFormatError,
     Sequence,
     TUMSequence,
     associate_timestamps,
@@ -437,11 +438,34 @@ def test_depth_not_16_bit(tmp_path, prefetch):
     seq = TUMSequence(tmp_path / "seq", prefetch=prefetch)
     with pytest.raises(DataFormatError, match=re.escape(str(bad)) + r".*single-channel 16-bit.*uint8"):
         seq[1]
-    with pytest.raises(DataFormatError, match="16-bit"):
-        list(seq)
+    with pytest.raises(ImageFormatError, match="16-bit"):
+        seq[1]
+    # In iteration a frame in the middle is skipped with its reason (see the tests below).
+    assert [f.index for f in seq] == [0, 2] and "16-bit" in seq.skipped[0][1]
     cv2.imwrite(str(bad), np.full((H, W, 3), 7, dtype=np.uint16))
     with pytest.raises(DataFormatError, match=r"uint16 with 3 channel"):
         seq[1]
+
+
+@pytest.mark.parametrize("prefetch", [0, 2])
+def test_wrong_size_or_format_in_the_middle_is_skipped_with_its_reason(tmp_path, caplog, prefetch):
+    _write_seq(tmp_path / "seq", _times(6))
+    depth8 = tmp_path / "seq" / "depth" / f"{_times(6)[2]:.6f}.png"
+    cv2.imwrite(str(depth8), np.full((H, W), 7, dtype=np.uint8))
+    small = tmp_path / "seq" / "rgb" / f"{_times(6)[4]:.6f}.png"
+    cv2.imwrite(str(small), np.ones((H // 2, W // 2, 3), dtype=np.uint8))
+    seq = TUMSequence(tmp_path / "seq", prefetch=prefetch)
+    with caplog.at_level(logging.WARNING, logger="torchslam.data.tum"):
+        frames = list(seq)
+    assert [f.index for f in frames] == [0, 1, 3, 5]
+    assert [i for i, _ in seq.skipped] == [2, 4]
+    assert str(depth8) in seq.skipped[0][1] and "single-channel 16-bit" in seq.skipped[0][1]
+    assert str(small) in seq.skipped[1][1] and "colour image is 16x12" in seq.skipped[1][1]
+    assert sum("skipping frame" in r.getMessage() for r in caplog.records) == 2
+    # The same file in the first frame means the folder and its calibration disagree: raised.
+    cv2.imwrite(str(tmp_path / "seq" / "rgb" / f"{_times(6)[0]:.6f}.png"), np.ones((H // 2, W // 2, 3), dtype=np.uint8))
+    with pytest.raises(ImageFormatError, match=r"rgb\.txt:3\): colour image is 16x12"):
+        list(TUMSequence(tmp_path / "seq", prefetch=prefetch))
 
 
 def test_image_size_mismatch(tmp_path):

@@ -134,9 +134,12 @@ def test_resume_redoes_only_the_incomplete_sequences(tmp_path, count_runs):
         m = _metrics(out, n)
         assert m["interrupted"] is False
         assert m["ate_rmse_m"] == json.loads(before[n])["ate_rmse_m"]  # deterministic redo
-    # A different request is not a finished one: fewer frames redoes everything.
+    # A different request (fewer frames) would replace complete results: refused unless --overwrite.
     count_runs.clear()
-    assert _batch(out, "synthetic:3", extra=["--max-frames", "5"]) == 0
+    assert _batch(out, "synthetic:3", extra=["--max-frames", "5"]) == 2
+    assert count_runs == []
+    count_runs.clear()
+    assert _batch(out, "synthetic:3", extra=["--max-frames", "5", "--overwrite"]) == 0
     assert count_runs == names and all(r["processed_frames"] == 5 for r in _summary(out)["rows"])
 
 
@@ -324,3 +327,77 @@ def test_two_process_gloo_gives_the_single_process_summary(tmp_path):
         assert (multi / r["name"] / "trajectory.txt").read_text() == (single / r["name"] / "trajectory.txt").read_text()
     # Rank 1 ran the second sequence (round-robin) and said so.
     assert f"[rank 1] [1/1] {a['rows'][1]['name']}: ok" in proc.stdout
+
+
+def test_a_rerun_with_another_request_is_refused_naming_the_folders_and_overwrite_redoes_them(tmp_path, capsys, count_runs):
+    out = tmp_path / "b"
+    assert _batch(out, "synthetic:2") == 0
+    names = [r["name"] for r in _summary(out)["rows"]]
+    before = {n: {p.name: p.read_bytes() for p in (out / n).iterdir()} for n in names}
+    summary = (out / "summary.json").read_bytes()
+    capsys.readouterr()
+    count_runs.clear()
+    assert _batch(out, "synthetic:2", extra=["--set", "kcc.sigma=0.3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--overwrite" in err[0] and str(out) in err[0]
+    assert all(f"{n} (the configuration differs: kcc.sigma)" in err[0] for n in names), err[0]
+    assert count_runs == []  # nothing ran, nothing was touched
+    assert {n: {p.name: p.read_bytes() for p in (out / n).iterdir()} for n in names} == before
+    assert (out / "summary.json").read_bytes() == summary
+    assert _batch(out, "synthetic:2", extra=["--set", "kcc.sigma=0.3", "--overwrite"]) == 0
+    assert count_runs == names
+    assert [r["status"] for r in _summary(out)["rows"]] == ["ok", "ok"]
+    for n in names:
+        assert yaml.safe_load((out / n / "config.yaml").read_text())["kcc"]["sigma"] == 0.3
+    # Once redone, the same request resumes.
+    count_runs.clear()
+    assert _batch(out, "synthetic:2", extra=["--set", "kcc.sigma=0.3"]) == 0 and count_runs == []
+
+
+def test_ctrl_c_during_an_overwrite_keeps_the_folders_it_did_not_reach(tmp_path, monkeypatch, count_runs):
+    out = tmp_path / "b"
+    options = BatchOptions(system="nislam", sources=("synthetic:3",), out=out, batch_size=3, tensorboard=False)
+    # One group of three, run one after another: before, the whole group's folders were cleared first.
+    assert not run_batch(options, overrides=SMALL_OVERRIDES, group_runner=run_group).interrupted
+    names = [r["name"] for r in _summary(out)["rows"]]
+    old = {n: (out / n / "metrics.json").read_bytes() for n in names}
+    real = batch_mod.run_sequence
+
+    def interrupt_second(system, sequence, **kw):
+        return real(system, EditedSequence(sequence, interrupt_at(3)) if len(count_runs) == 1 else sequence, **kw)
+
+    monkeypatch.setattr(batch_mod, "run_sequence", interrupt_second)
+    count_runs.clear()
+    again = BatchOptions(**{**options.__dict__, "max_frames": 8, "overwrite": True})
+    result = run_batch(again, overrides=SMALL_OVERRIDES, group_runner=run_group)
+    assert result.interrupted and [r["status"] for r in result.rows] == ["ok", "interrupted", "not run"]
+    assert _metrics(out, names[0])["max_frames"] == 8  # the new run
+    assert _metrics(out, names[1])["interrupted"] is True and _metrics(out, names[1])["processed_frames"] == 3
+    assert (out / names[2] / "metrics.json").read_bytes() == old[names[2]]  # the earlier complete run, kept
+    assert completed_run(out / names[2], "nislam") is not None
+
+
+def test_a_second_batch_on_the_same_folder_fails_at_once_naming_the_first(tmp_path, capsys):
+    out = tmp_path / "b"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c", (
+            "import fcntl, os, sys\n"
+            "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+            "os.write(fd, str(os.getpid()).encode())\n"
+            "print('locked', flush=True)\n"
+            "sys.stdin.read()\n"
+        ), str(out / ".torchslam-batch.lock")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        assert _batch(out, "synthetic") == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"another torchslam batch (pid {holder.pid})" in err[0] and str(out) in err[0]
+        assert sorted(p.name for p in out.iterdir()) == [".torchslam-batch.lock"]  # nothing ran
+    finally:
+        holder.stdin.close()
+        holder.wait(timeout=30)
+    assert _batch(out, "synthetic") == 0  # the lock went with its process

@@ -10,7 +10,7 @@ from .synthetic import (
     write_tum_folder,
 )
 from .trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
-from .tum import AssociationStats, CorruptImageError, TUMSequence, sequence_info
+from .tum import AssociationStats, CorruptImageError, ImageFormatError, TUMSequence, sequence_info
 
 __all__ = [
     "INTRINSICS_PRESETS",
@@ -18,6 +18,7 @@ __all__ = [
     "Calibration",
     "CameraPreset",
     "CorruptImageError",
+    "ImageFormatError",
     "Frame",
     "SYNTHETIC_TRAJECTORIES",
     "Sequence",

@@ -46,7 +46,7 @@ from .calibration import Calibration, resolve_calibration
 from .frame import Frame, associate_timestamps
 from .trajectory import Trajectory, read_tum_trajectory
 
-__all__ = ["TUMSequence", "AssociationStats", "CorruptImageError", "sequence_info"]
+__all__ = ["TUMSequence", "AssociationStats", "CorruptImageError", "ImageFormatError", "sequence_info"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +63,10 @@ _TAIL_BYTES = 64
 
 class CorruptImageError(DataFormatError):
     """An image file of a sequence cannot be read or decoded (missing bytes, not an image)."""
+
+
+class ImageFormatError(DataFormatError):
+    """An image of a sequence decodes but has the wrong size or pixel format (e.g. 8-bit depth)."""
 
 
 @dataclass(frozen=True)
@@ -232,7 +236,8 @@ class TUMSequence:
         gt_bracket_gap: (N,) float64 spacing of the two ground-truth poses bracketing each frame,
             seconds (inf outside the ground-truth span or without ground truth).
         accelerometer: ((M,) float64 seconds, (M, 3) float64 m/s^2) or None.
-        skipped: (index, reason) of corrupt frames skipped by the latest iteration.
+        skipped: (index, reason) of frames skipped by the latest iteration (corrupt images, or
+            images of the wrong size or format after the first frame; see ``__iter__``).
 
     Raises:
         DataFormatError: naming the file and line for a missing list, a malformed or
@@ -373,7 +378,8 @@ class TUMSequence:
         Raises:
             IndexError: for an index out of range.
             CorruptImageError: (a DataFormatError) naming the file of an undecodable image.
-            DataFormatError: naming the file of an image with the wrong size or pixel format.
+            ImageFormatError: (a DataFormatError) naming the file of an image with the wrong size
+                or pixel format.
         """
         n = len(self)
         i = operator.index(index)
@@ -382,7 +388,13 @@ class TUMSequence:
         return self._load(i % n)
 
     def __iter__(self) -> Iterator[Frame]:
-        """Yield the frames in order, skipping (with a warning) those whose images are corrupt.
+        """Yield the frames in order, skipping (with a warning) those whose images are unusable.
+
+        A frame is skipped, and recorded in ``skipped`` with the reason, when an image is corrupt
+        (truncated, undecodable) or, once a frame of the iteration has decoded, when an image has
+        the wrong size or pixel format (an 8-bit depth map, a resized colour image): one odd frame
+        in a sequence must not lose the frames tracked before it. A size or format error before
+        any frame has decoded means the folder disagrees with its calibration and is raised.
 
         With ``prefetch > 0`` a background thread decodes up to ``prefetch`` frames ahead; OpenCV
         and NumPy release the GIL while decoding and converting, so this overlaps the consumer's
@@ -396,12 +408,16 @@ class TUMSequence:
         return self._iter_prefetch(self.prefetch)
 
     def _iter_plain(self) -> Iterator[Frame]:
+        decoded = False
         for i in range(len(self)):
             try:
                 frame = self._load(i)
-            except CorruptImageError as exc:
+            except (CorruptImageError, ImageFormatError) as exc:
+                if not _skippable(exc, decoded):
+                    raise
                 self._skip(i, exc)
                 continue
+            decoded = True
             yield frame
 
     def _iter_prefetch(self, ahead: int) -> Iterator[Frame]:
@@ -420,7 +436,7 @@ class TUMSequence:
                         return
                     try:
                         results.put((i, self._load(i), None))
-                    except CorruptImageError as exc:
+                    except (CorruptImageError, ImageFormatError) as exc:
                         results.put((i, None, exc))
             except BaseException as exc:  # handed to the consumer, which re-raises it
                 results.put((-1, None, exc))
@@ -429,6 +445,7 @@ class TUMSequence:
 
         worker = threading.Thread(target=work, name=f"torchslam-prefetch-{self.name}", daemon=True)
         worker.start()
+        decoded = False
         try:
             while True:
                 item = results.get()
@@ -437,10 +454,11 @@ class TUMSequence:
                 i, frame, exc = item
                 slots.release()
                 if frame is None:
-                    if isinstance(exc, CorruptImageError):
+                    if _skippable(exc, decoded):
                         self._skip(i, exc)
                         continue
                     raise exc
+                decoded = True
                 yield frame
         finally:
             stop.set()
@@ -454,19 +472,19 @@ class TUMSequence:
         cam = self.camera
         bgr = _read_image(self.rgb_paths[i], cv2.IMREAD_COLOR, self._rgb_where[i])
         if bgr.shape[:2] != (cam.height, cam.width):
-            raise DataFormatError(
+            raise ImageFormatError(
                 f"{self.rgb_paths[i]} ({self._rgb_where[i]}): colour image is {bgr.shape[1]}x{bgr.shape[0]}, "
                 f"the calibration ({self.calibration_source}) says {cam.width}x{cam.height}"
             )
         raw = _read_image(self.depth_paths[i], cv2.IMREAD_UNCHANGED, self._depth_where[i])
         if raw.dtype != np.uint16 or raw.ndim != 2:
             channels = 1 if raw.ndim == 2 else raw.shape[2]
-            raise DataFormatError(
+            raise ImageFormatError(
                 f"{self.depth_paths[i]} ({self._depth_where[i]}): depth must be a single-channel 16-bit image, "
                 f"got {raw.dtype} with {channels} channel(s)"
             )
         if raw.shape != (cam.height, cam.width):
-            raise DataFormatError(
+            raise ImageFormatError(
                 f"{self.depth_paths[i]} ({self._depth_where[i]}): depth image is {raw.shape[1]}x{raw.shape[0]}, "
                 f"the calibration ({self.calibration_source}) says {cam.width}x{cam.height}"
             )
@@ -488,6 +506,11 @@ class TUMSequence:
             T_wc=T_wc,
             depth_timestamp=float(self.depth_timestamps[i]),
         )
+
+
+def _skippable(exc: BaseException, decoded: bool) -> bool:
+    """Whether iteration skips a frame that raised ``exc`` (``decoded``: an earlier frame decoded)."""
+    return isinstance(exc, CorruptImageError) or (decoded and isinstance(exc, ImageFormatError))
 
 
 def _closest_gap(a: np.ndarray, b: np.ndarray) -> float:

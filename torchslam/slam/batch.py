@@ -13,7 +13,15 @@ records which engine ran.
 
 Resuming. A sequence whose folder already holds a complete run of the same request (see
 :func:`completed_run`) is not run again; its row is read from its ``metrics.json`` and marked
-``resumed``. Anything else in the folder is cleared and the sequence is redone.
+``resumed``. A folder holding an incomplete run (interrupted, failed, unreadable) is redone. A
+folder holding a complete run of another request (system, data, config or ``max_frames``) is
+never replaced silently: the batch is refused, naming those folders, unless ``overwrite`` is set.
+A redone folder's old files are removed only when its new run is written, so an interruption
+never leaves a folder emptier than it was.
+
+Locking. The batch holds an exclusive lock on ``<out>/.torchslam-batch.lock`` (the file holds
+the pid); a second batch on the same folder fails at once naming the first one's pid. Under
+torchrun rank 0 takes the lock for the whole process group.
 
 Failures. A source that cannot be opened, or a sequence whose run raises, becomes a ``failed``
 row with a one-line message (naming the file for data errors) and the traceback in
@@ -65,6 +73,7 @@ from .outputs import write_run
 from .progress import log_hparams
 from .registry import get_system
 from .run import SYNTHETIC, DataConfig, load_sequence, resolve_config
+from .runfolder import BatchLock, OutputFolderError, is_run_file
 
 __all__ = [
     "STATUSES",
@@ -115,8 +124,6 @@ STATUSES = ("ok", "resumed", "failed", "interrupted", "not run")
 
 GROUNDTRUTH_FILE = "groundtruth.txt"
 ERROR_FILE = "error.txt"
-# Files of a run folder that are cleared before a sequence is redone.
-_RUN_FILES = ("trajectory.txt", "keyframes.txt", "map.ply", "metrics.json", "config.yaml", GROUNDTRUTH_FILE, ERROR_FILE)
 # Names in the batch folder that are not run folders.
 _RESERVED_NAMES = frozenset({"summary.md", "summary.csv", "summary.json", "report.md", "report"})
 _SYNTHETIC_SOURCE = re.compile(r"^synthetic(?::(.*))?$")
@@ -455,56 +462,85 @@ def completed_run(
     poses. The same request means, where given: the same data ``spec``, the same resolved
     ``config`` (``config.yaml``; the device may differ) and the same ``max_frames``.
     """
-    folder = Path(folder)
-    why = None
-    try:
-        metrics = json.loads((folder / "metrics.json").read_text())
-    except (OSError, ValueError) as exc:
-        metrics, why = None, f"metrics.json unreadable ({exc.__class__.__name__})"
-    if metrics is not None:
-        if not isinstance(metrics, dict):
-            why = "metrics.json is not a mapping"
-        elif metrics.get("system") != system:
-            why = f"system {metrics.get('system')!r}, not {system!r}"
-        elif _count(metrics.get("processed_frames")) is None:
-            why = "metrics.json has no processed_frames"
-        elif metrics.get("interrupted") is not False:
-            why = "the run was interrupted"
-        elif spec is not None and metrics.get("data") != spec:
-            why = f"data {metrics.get('data')!r}, not {spec!r}"
-        elif metrics.get("max_frames") != max_frames:
-            why = f"max_frames {metrics.get('max_frames')}, not {max_frames}"
-    if why is None and metrics is not None:
-        try:
-            traj = read_tum_trajectory(folder / "trajectory.txt")
-            if metrics.get("tracked_frames") is not None and len(traj) != metrics["tracked_frames"]:
-                why = f"trajectory.txt has {len(traj)} poses, metrics.json says {metrics['tracked_frames']}"
-        except TorchSlamError as exc:
-            why = f"trajectory.txt: {exc}"
-    if why is None and metrics is not None and config is not None:
-        try:
-            saved = yaml.safe_load((folder / "config.yaml").read_text())
-        except (OSError, yaml.YAMLError) as exc:
-            saved, why = None, f"config.yaml unreadable ({exc.__class__.__name__})"
-        if why is None and _without_device(saved) != _without_device(dict(config)):
-            why = "the configuration differs"
+    metrics, why, _ = _run_state(Path(folder), system, spec, config, max_frames)
     if why is not None:
-        if folder.is_dir():
+        if Path(folder).is_dir():
             logger.info("%s: redoing (%s)", folder, why)
         return None
     return metrics
 
 
-def _clear_run_folder(folder: Path) -> None:
-    for name in _RUN_FILES:
-        (folder / name).unlink(missing_ok=True)
-    for events in folder.glob("events.out.tfevents.*"):
-        events.unlink()
+def _differing_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested mappings."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return [prefix or "(the whole config)"] if a != b else []
+    out: list[str] = []
+    for k in sorted(set(a) | set(b), key=str):
+        out += _differing_keys(a.get(k), b.get(k), f"{prefix}{k}.") if isinstance(a.get(k), dict) and isinstance(b.get(k), dict) else (
+            [f"{prefix}{k}"] if a.get(k) != b.get(k) else []
+        )
+    return out
+
+
+def _run_state(
+    folder: Path, system: str, spec: str | None, config: Mapping[str, Any] | None, max_frames: int | None
+) -> tuple[dict[str, Any] | None, str | None, bool]:
+    """(metrics, why it is not a complete run of this request or None, whether it is a complete run at all)."""
+    why = None
+    try:
+        metrics = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError) as exc:
+        return None, f"metrics.json unreadable ({exc.__class__.__name__})", False
+    if not isinstance(metrics, dict):
+        return None, "metrics.json is not a mapping", False
+    if _count(metrics.get("processed_frames")) is None:
+        return None, "metrics.json has no processed_frames", False
+    if metrics.get("interrupted") is not False:
+        return None, "the run was interrupted", False
+    try:
+        traj = read_tum_trajectory(folder / "trajectory.txt")
+        if metrics.get("tracked_frames") is not None and len(traj) != metrics["tracked_frames"]:
+            why = f"trajectory.txt has {len(traj)} poses, metrics.json says {metrics['tracked_frames']}"
+    except TorchSlamError as exc:
+        why = f"trajectory.txt: {exc}"
+    if why is not None:
+        return None, why, False
+    # A complete run: is it this request's?
+    if metrics.get("system") != system:
+        why = f"system {metrics.get('system')!r}, not {system!r}"
+    elif spec is not None and metrics.get("data") != spec:
+        why = f"data {metrics.get('data')!r}, not {spec!r}"
+    elif metrics.get("max_frames") != max_frames:
+        why = f"max_frames {metrics.get('max_frames')}, not {max_frames}"
+    elif config is not None:
+        try:
+            saved = yaml.safe_load((folder / "config.yaml").read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            return None, f"config.yaml unreadable ({exc.__class__.__name__})", False
+        if _without_device(saved) != _without_device(dict(config)):
+            keys = _differing_keys(_without_device(saved), _without_device(dict(config)))
+            why = f"the configuration differs: {', '.join(keys[:3])}{' ...' if len(keys) > 3 else ''}"
+    return (None, why, True) if why is not None else (metrics, None, True)
+
+
+def _run_files(folder: Path) -> list[Path]:
+    """The files of an earlier run in ``folder`` (anything else there is left alone)."""
+    if not folder.is_dir():
+        return []
+    return [p for p in folder.iterdir() if is_run_file(p.name) and p.is_file()]
+
+
+def _clear(files: Iterable[Path]) -> None:
+    for f in files:
+        f.unlink(missing_ok=True)
 
 
 def _write_error(folder: Path, exc: BaseException) -> str:
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / ERROR_FILE).write_text("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / ERROR_FILE).write_text("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+    except OSError as write_exc:  # e.g. the disk is full: the row still says what went wrong
+        logger.error("%s: cannot write %s (%s)", folder, ERROR_FILE, write_exc.strerror or write_exc)
     text = str(exc).strip().splitlines()
     msg = text[0] if text else ""
     return msg if isinstance(exc, TorchSlamError) else f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
@@ -616,6 +652,7 @@ class BatchOptions:
         device: "cpu" or "cuda" (under torchrun with NCCL, each rank its ``LOCAL_RANK`` GPU).
         tensorboard: write TensorBoard events into each run folder.
         max_frames: stop each sequence after this many frames.
+        overwrite: redo folders that hold a complete run of another request (else refuse).
     """
 
     system: str
@@ -625,6 +662,7 @@ class BatchOptions:
     device: str = "cpu"
     tensorboard: bool = True
     max_frames: int | None = None
+    overwrite: bool = False
 
 
 @dataclass
@@ -694,6 +732,8 @@ def run_batch(
     Raises:
         ConfigError: bad options, config, sources or distributed environment (before anything
             runs). Errors of single sequences do not raise: they are failed rows.
+        OutputFolderError: another batch holds the folder's lock, or (without ``overwrite``)
+            some run folders hold a complete run of another request (before anything runs).
     """
     _check_options(options)
     spec = get_system(options.system)
@@ -703,6 +743,7 @@ def run_batch(
     if group_runner is not None:
         engine, runner = getattr(group_runner, "__name__", "custom"), group_runner
     dist = _init_distributed(options.device)
+    lock: BatchLock | None = None
     try:
         plan = _Plan(
             options=options,
@@ -715,8 +756,13 @@ def run_batch(
             out=Path(options.out),
             device=f"cuda:{dist.local_rank}" if options.device == "cuda" and dist.active else options.device,
         )
+        lock = _lock_batch_folder(plan.out, dist)
+        if not options.overwrite:
+            _refuse_replacing_other_requests(plan, sources)
         return _run_shard(plan, sources, dist, on_row)
     finally:
+        if lock is not None:
+            lock.release()
         if dist.initialised_here:
             import torch.distributed as tdist
 
@@ -741,6 +787,48 @@ class _Plan:
         if src.error is not None:
             return None
         return completed_run(self.out / src.name, self.system, src.spec, self.configs[src.index], self.options.max_frames)
+
+
+def _lock_batch_folder(out: Path, dist: _Dist) -> BatchLock | None:
+    """Take the batch folder's lock on rank 0; every rank raises if it is held by another batch."""
+    lock, message = None, None
+    if dist.rank == 0:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            lock = BatchLock(out)
+            lock.acquire()
+        except OSError as exc:
+            message = f"--out {out}: cannot create the folder ({exc.strerror or exc})"
+        except OutputFolderError as exc:
+            message = str(exc)
+    if dist.world_size > 1:
+        import torch.distributed as tdist
+
+        box = [message]
+        tdist.broadcast_object_list(box, src=0)
+        message = box[0]
+    if message is not None:
+        if lock is not None:
+            lock.release()
+        raise OutputFolderError(message)
+    return lock
+
+
+def _refuse_replacing_other_requests(plan: _Plan, sources: list[BatchSource]) -> None:
+    """Raise OutputFolderError naming the run folders that hold a complete run of another request."""
+    differing = []
+    for src in sources:
+        folder = plan.out / src.name
+        if src.error is not None or not folder.is_dir():
+            continue
+        _, why, complete = _run_state(folder, plan.system, src.spec, plan.configs[src.index], plan.options.max_frames)
+        if complete and why is not None:
+            differing.append(f"{src.name} ({why})")
+    if differing:
+        raise OutputFolderError(
+            f"--out {plan.out}: {len(differing)} run folder(s) hold a complete run of another request that this batch "
+            f"would replace: {', '.join(differing)}; pass --overwrite to redo them, or choose another --out"
+        )
 
 
 def _run_shard(plan: _Plan, sources: list[BatchSource], dist: _Dist, on_row) -> BatchResult:
@@ -804,15 +892,18 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
     """Open, run and write one group; return whether it was interrupted."""
     o = plan.options
     loaded: list[tuple[BatchSource, Sequence]] = []
+    # The earlier run's files go only when this sequence's new results (or error) are written:
+    # a sequence that an interruption keeps from running keeps its folder as it was.
+    stale: dict[str, list[Path]] = {}
     for src in group:
         folder = plan.out / src.name
-        if folder.is_dir():
-            _clear_run_folder(folder)
+        stale[src.name] = _run_files(folder)
         try:
             if src.error is not None:
                 raise ConfigError(src.error)
             seq = generate_sequence(src.synthetic) if src.synthetic is not None else load_sequence(src.spec, plan.data_cfg)
         except Exception as exc:  # noqa: BLE001 -- any error of one source is that source's failed row
+            _clear(stale[src.name])
             emit(src, summary_row(src, "failed", message=_write_error(folder, exc)))
             continue
         loaded.append((src, seq))
@@ -829,6 +920,7 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
             if isinstance(result, KeyboardInterrupt):  # not run: the group was stopped before it
                 interrupted = True
                 continue
+            _clear(stale[src.name])
             if isinstance(result, BaseException):
                 emit(src, summary_row(src, "failed", message=_write_error(folder, result)))
                 continue

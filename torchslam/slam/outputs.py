@@ -14,7 +14,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ from ..data.frame import Sequence
 from ..data.trajectory import Trajectory, write_tum_trajectory
 from ..environment import environment_info
 from .base import RunResult
+from .runfolder import OutputWriteError
 
 __all__ = ["METRIC_KEYS", "voxel_downsample", "write_ply", "write_run"]
 
@@ -139,24 +140,49 @@ def write_run(
         sequence: the sequence that was processed (for ground truth and names).
         config: the resolved configuration, saved as ``config.yaml``.
         extra: more metrics to record (e.g. the attitude source, the device).
+
+    Raises:
+        OutputWriteError: some files could not be written (a full disk, a read-only folder);
+            every other file was still written and the error names both.
     """
     import yaml
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputWriteError(out, [], [("", f"cannot create the folder ({exc.strerror or exc})")]) from exc
+    written: list[str] = []
+    failed: list[tuple[str, str]] = []
+
+    def attempt(name: str, write: Callable[[Path], None]) -> None:
+        # A full disk or another write error loses one file, not the run: the rest is still written.
+        try:
+            write(out / name)
+        except OSError as exc:
+            logger.error("%s: cannot write (%s)", out / name, exc.strerror or exc)
+            failed.append((name, exc.strerror or str(exc)))
+            try:  # a half-written file would pass for a result
+                (out / name).unlink(missing_ok=True)
+            except OSError:
+                pass
+        else:
+            written.append(name)
+
     o = result.output
     estimate = Trajectory(o.timestamps.to(torch.float64), o.T_wc.to(torch.float64))
-    write_tum_trajectory(out / "trajectory.txt", estimate, header=f"torchslam {system} estimate of {sequence.name} (camera-to-world)")
+    attempt("trajectory.txt", lambda p: write_tum_trajectory(
+        p, estimate, header=f"torchslam {system} estimate of {sequence.name} (camera-to-world)"))
     kf_times = sequence.timestamps[o.keyframe_indices] if len(o.keyframe_indices) else torch.zeros(0, dtype=torch.float64)
-    write_tum_trajectory(
-        out / "keyframes.txt",
+    attempt("keyframes.txt", lambda p: write_tum_trajectory(
+        p,
         Trajectory(kf_times.to(torch.float64), o.keyframe_T_wc.to(torch.float64)),
         header=f"torchslam {system} keyframes of {sequence.name} (camera-to-world)",
-    )
+    ))
     if o.map_points is not None and len(o.map_points):
-        write_ply(out / "map.ply", o.map_points, o.map_colors)
+        attempt("map.ply", lambda p: write_ply(p, o.map_points, o.map_colors))
     if config is not None:
-        (out / "config.yaml").write_text(yaml.safe_dump(dict(config), sort_keys=False))
+        attempt("config.yaml", lambda p: p.write_text(yaml.safe_dump(dict(config), sort_keys=False)))
     n = max(result.frames_processed, 1)
     metrics: dict[str, Any] = {
         "system": system,
@@ -180,7 +206,9 @@ def write_run(
     if extra:
         metrics.update(extra)
     metrics["environment"] = environment_info()
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n")
+    attempt("metrics.json", lambda p: p.write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n"))
+    if failed:
+        raise OutputWriteError(out, written, failed)
     return metrics
 
 

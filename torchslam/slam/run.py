@@ -22,6 +22,7 @@ from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
 from .progress import log_final, log_hparams, progress_callback
 from .registry import get_system
+from .runfolder import prepare_run_folder
 
 __all__ = ["DataConfig", "RunOptions", "load_sequence", "resolve_config", "run"]
 
@@ -58,6 +59,8 @@ class RunOptions:
     ``params`` is a checkpoint of learned config values (``torchslam.learn.save_checkpoint``)
     applied on top of the config file and below ``--set`` overrides. With ``tensorboard``, the
     ATE so far, running stage times and counters are logged every ``monitor_every`` frames.
+    ``out`` must be a missing or empty folder; ``overwrite`` clears one that holds only the
+    files of an earlier run (see ``runfolder.prepare_run_folder``).
     """
 
     system: str
@@ -68,6 +71,7 @@ class RunOptions:
     max_frames: int | None = None
     params: Path | None = None
     monitor_every: int = 30
+    overwrite: bool = False
 
 
 def resolve_config(
@@ -136,9 +140,13 @@ def load_sequence(data: str, cfg: DataConfig) -> Sequence:
 
 
 def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:
-    """``logs/<system>-<data name>-<YYYYmmdd-HHMMSS>``."""
+    """``logs/<system>-<data name>-<YYYYmmdd-HHMMSS>``, with ``-2``, ``-3`` ... if that exists already."""
     name = SYNTHETIC if data == SYNTHETIC else Path(data).resolve().name
-    return Path(root) / f"{system}-{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    base = Path(root) / f"{system}-{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out, k = base, 2
+    while out.exists():
+        out, k = base.with_name(f"{base.name}-{k}"), k + 1
+    return out
 
 
 def run(
@@ -149,13 +157,21 @@ def run(
 ) -> dict[str, Any]:
     """Run ``options.system`` on ``options.data`` and write the run folder ``options.out``.
 
+    The folder is checked before any data is read (see ``RunOptions``). Ctrl-C stops tracking
+    and the frames processed so far are written, with ``"interrupted": true``.
+
     Returns:
         The metrics written to ``metrics.json``.
+
+    Raises:
+        OutputFolderError: ``out`` is a file, not writable, or not empty (without ``overwrite``).
+        OutputWriteError: some output files could not be written; the others were.
     """
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
-    sequence = load_sequence(options.data, data_cfg)
     out = Path(options.out)
+    prepare_run_folder(out, overwrite=options.overwrite)
+    sequence = load_sequence(options.data, data_cfg)
     monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
     try:
         system = spec.build(system_cfg, device=options.device, monitor=monitor)
