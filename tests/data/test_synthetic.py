@@ -120,7 +120,11 @@ def test_renderer_chunking_does_not_change_images():
     T = seq.groundtruth.T_wc[:5]
     one = SceneRenderer(seq.scene, seq.camera, chunk=1).render(T)
     many = SceneRenderer(seq.scene, seq.camera, chunk=4).render(T)
-    assert torch.equal(one.rgb, many.rgb) and torch.equal(one.depth, many.depth) and torch.equal(one.prim, many.prim)
+    # The surface seen at each pixel is the same; colour and depth to float32 round-off (a chunk
+    # is one batched matmul, whose rounding may depend on the batch size and the CPU).
+    assert torch.equal(one.prim, many.prim)
+    torch.testing.assert_close(one.rgb, many.rgb, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(one.depth, many.depth, rtol=1e-5, atol=1e-6)
 
 
 def _brute_force(scene, cam, T_wc):

@@ -64,6 +64,21 @@ def test_features_equal_opencv_on_the_same_grey_image(tum_frames):
     assert f.levels.min() >= 0 and f.levels.max() < 8
 
 
+def _assert_same_feature_set(got: Features, ref: Features, px_tol: float = 1e-3, resp_rtol: float = 1e-4) -> None:
+    """The two hold the same keypoints in any order: each matched one-to-one to a keypoint of the
+    same level within ``px_tol`` pixels, with the same response (to ``resp_rtol``) and descriptor."""
+    assert len(got) == len(ref)
+    if len(ref) == 0:
+        return
+    d = torch.cdist(got.keypoints.double(), ref.keypoints.double())  # (K, K) pixels
+    d[got.levels[:, None] != ref.levels[None, :]] = float("inf")
+    dist, j = d.min(dim=1)
+    assert float(dist.max()) <= px_tol, float(dist.max())
+    assert torch.equal(j.sort().values, torch.arange(len(ref)))  # one-to-one
+    torch.testing.assert_close(got.responses, ref.responses[j], rtol=resp_rtol, atol=1e-9)
+    assert torch.equal(got.descriptors, ref.descriptors[j])
+
+
 def test_batch_equals_per_image_and_is_ragged(tum_frames):
     flat = torch.full_like(tum_frames[0], 0.5)
     batch = torch.stack([tum_frames[0], flat, tum_frames[1]])
@@ -71,8 +86,24 @@ def test_batch_equals_per_image_and_is_ragged(tum_frames):
     assert isinstance(out, list) and len(out) == 3
     assert len(out[1]) == 0  # a flat image has no corners: K = 0, not an error
     for got, img in zip(out, batch):
-        ref = extract_orb(img, ORBConfig(n_features=500))
-        assert torch.equal(got.keypoints, ref.keypoints) and torch.equal(got.descriptors, ref.descriptors)
+        _assert_same_feature_set(got, extract_orb(img, ORBConfig(n_features=500)))
+    assert len(out[0]) > 400 and len(out[2]) > 400
+    # the comparison is order-free: the same features in another order are the same set
+    perm = torch.randperm(len(out[0]), generator=torch.Generator().manual_seed(0))
+    _assert_same_feature_set(Features(*(getattr(out[0], f)[perm] for f in ("keypoints", "descriptors", "levels", "responses"))), out[0])
+
+
+def test_grey_conversion_does_not_depend_on_the_batch():
+    # ORB sees uint8 grey levels: one level off in a few pixels changes the keypoints, so an
+    # image must convert to the same levels alone and in any batch (odd sizes, float32 and 64).
+    gen = torch.Generator().manual_seed(1)
+    for dtype in (torch.float32, torch.float64):
+        rgb = torch.rand(5, 3, 37, 53, generator=gen, dtype=dtype)
+        grey = rgb_to_grey_u8(rgb)
+        for b in range(5):
+            assert torch.equal(rgb_to_grey_u8(rgb[b : b + 1])[0], grey[b])
+        assert torch.equal(rgb_to_grey_u8(rgb[1:4]), grey[1:4])
+        assert torch.equal(rgb_to_grey_u8(rgb[:, :, 1:, 2:]), grey[:, 1:, 2:])  # a strided view
 
 
 def test_empty_image_gives_empty_tensors():

@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from torchslam.config import config_from_dict
 from torchslam.errors import ConfigError, DTypeError, ShapeError
@@ -452,7 +453,10 @@ def test_kernel_correlator_module_matches_functions_and_learns(grey_patches):
 
     names = {"sigma", "lam", "temperature"}
     learn = KernelCorrelator(KCCConfig(soft_argmax=True), learnable=names, dtype=torch.float64)
-    assert {n for n, _ in learn.named_parameters()} == {"sigma", "lam", "temperature"}
+    assert {n for n, _ in learn.named_parameters()} == {"log_sigma", "log_lam", "log_temperature"}
+    # the public attributes read the positive values, differentiably
+    assert [float(getattr(learn, n).detach()) for n in ("sigma", "lam", "temperature")] == pytest.approx([0.2, 0.1, 0.02], rel=1e-12)
+    assert learn.sigma.requires_grad and not plain.sigma.requires_grad
     out = learn(x, learn.fit(z))
     loss = (out.shift - torch.tensor([[2.4, -1.2]], dtype=torch.float64)).square().sum()
     loss.backward()
@@ -460,3 +464,28 @@ def test_kernel_correlator_module_matches_functions_and_learns(grey_patches):
         assert p.grad is not None and torch.isfinite(p.grad) and p.grad != 0
     with pytest.raises(ConfigError, match=r"unknown names \['T_K'\]"):
         KernelCorrelator(learnable={"T_K"})
+
+
+@pytest.mark.parametrize("lr", [3e-3, 2e-2])
+def test_kernel_correlator_learned_values_stay_positive_under_adam(grey_patches, lr):
+    # The loop that used to drive the temperature and λ below zero (and the loss up): Adam on the
+    # soft arg-max shift error of two noisy pairs. In log space every step keeps them positive.
+    z = F.avg_pool2d(grey_patches[:, None], 2)  # (2, 1, 64, 64)
+    shifts = torch.tensor([[2.4, -1.2], [-3.3, 1.7]], dtype=torch.float64)
+    x = torch.cat([fourier_shift(z[i : i + 1], float(s[0]), float(s[1])) for i, s in enumerate(shifts)])
+    x = x + 0.1 * torch.randn(x.shape, generator=_gen(0), dtype=torch.float64)
+    names = ("sigma", "lam", "temperature")
+    kc = KernelCorrelator(KCCConfig(soft_argmax=True), learnable=set(names), dtype=torch.float64)
+    opt = torch.optim.Adam(kc.parameters(), lr=lr)
+    losses, lowest = [], dict.fromkeys(names, math.inf)
+    for _ in range(300):
+        opt.zero_grad()
+        loss = (kc(x, kc.fit(z)).shift - shifts).square().sum(1).mean()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        for n in names:
+            lowest[n] = min(lowest[n], float(getattr(kc, n).detach()))
+    assert all(v > 0 for v in lowest.values()), lowest
+    assert all(math.isfinite(v) for v in losses)
+    assert max(losses) <= losses[0] and losses[-1] < 0.6 * losses[0], (losses[0], max(losses), losses[-1])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import argparse
 import pickle
 
 import pytest
@@ -164,6 +165,34 @@ def test_load_rejects_bad_files_naming_them(tmp_path):
     torch.save(doc, bad_value)
     with pytest.raises(DataFormatError, match=r"nan\.pt: value 'kcc.sigma'"):
         load_checkpoint(bad_value)
+
+
+def test_unsafe_pickle_checkpoint_is_refused_in_one_line_naming_file_and_object(tmp_path, capsys):
+    # torch.save of an arbitrary object (and a hand-written pickle that would call print) beside
+    # valid checkpoint fields: weights_only refuses both; the message is one complete line.
+    p = learnable(NISlamConfig(), ["kcc.sigma"])
+    save_checkpoint(tmp_path / "good.pt", p)
+    doc = torch.load(tmp_path / "good.pt", weights_only=True)
+    doc["extra"]["args"] = argparse.Namespace(lr=0.01)
+    unsafe = tmp_path / "unsafe.pt"
+    torch.save(doc, unsafe)
+    evil = tmp_path / "evil.pt"
+    with evil.open("wb") as fh:
+        pickle.dump({"format": "torchslam-params", "x": _Evil()}, fh, protocol=2)
+    for path, name in ((unsafe, "argparse.Namespace"), (evil, "print")):
+        with pytest.raises(DataFormatError) as info:
+            load_checkpoint(path)
+        msg = str(info.value)
+        assert msg.startswith(f"{path}: not a readable torchslam checkpoint (refused as an unsafe pickle")
+        assert f"would import {name};" in msg and msg.endswith("never runs code)")
+        assert "\n" not in msg and "\x1b" not in msg and "weights_only" not in msg and "Re-running" not in msg
+    assert "loaded code ran" not in capsys.readouterr().out
+    # other unreadable files keep a one-line reason too
+    for data, reason in ((b"", "the file ends early"), (b"PK\x03\x04junk", "not a ZIP archive)"), (b"not a checkpoint", "not plain pickled data")):
+        (tmp_path / "bad.pt").write_bytes(data)
+        with pytest.raises(DataFormatError, match=r"bad\.pt: not a readable torchslam checkpoint \(") as info:
+            load_checkpoint(tmp_path / "bad.pt")
+        assert reason in str(info.value) and "\n" not in str(info.value)
 
 
 def test_checkpoint_values_reject_other_systems_modules_and_unknown_keys(tmp_path):

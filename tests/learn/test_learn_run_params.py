@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
 import math
@@ -72,11 +73,14 @@ def test_run_rejects_bad_checkpoints_naming_file_and_key(tmp_path, capsys):
     torch.save(doc, unknown)
     junk = tmp_path / "junk.pt"
     junk.write_text("not a checkpoint")
+    unsafe = tmp_path / "unsafe.pt"
+    torch.save({**doc, "extra": {"args": argparse.Namespace(lr=0.1)}}, unsafe)
     cases = [
         (["--params", str(good), "--system", "gcslam"], [str(good), "NISlamConfig", "gcslam"]),
         (["--params", str(net)], [str(net), "PairWeightNet"]),
         (["--params", str(unknown)], [str(unknown), "kcc.nonsense", "unknown key"]),
         (["--params", str(junk)], [str(junk), "not a readable"]),
+        (["--params", str(unsafe)], [str(unsafe), "unsafe pickle that would import argparse.Namespace"]),
         (["--params", str(tmp_path / "missing.pt")], ["missing.pt", "no such checkpoint"]),
     ]
     for args, needles in cases:
@@ -86,6 +90,8 @@ def test_run_rejects_bad_checkpoints_naming_file_and_key(tmp_path, capsys):
         assert rc == 2, args
         for needle in needles:
             assert needle in err, (needle, err)
+        if args[1] == str(unsafe):  # one line, not PyTorch's advice to load it with weights_only=False
+            assert len(err.strip().splitlines()) == 1 and "weights_only" not in err, err
         assert not out.exists()
     with pytest.raises(ConfigError, match="kcc.nonsense"):
         resolve_config("nislam", None, [], params=unknown)

@@ -124,10 +124,14 @@ def rgb_to_grey_u8(rgb: Tensor) -> Tensor:
         rgb: (B, 3, H, W) float32/float64 colour in [0, 1] (RGB channel order).
 
     Returns:
-        (B, H, W) uint8 grey levels, ``round(255 * (0.299 R + 0.587 G + 0.114 B))`` clamped to [0, 255].
+        (B, H, W) uint8 grey levels, ``round(255 * (0.299 R + 0.587 G + 0.114 B))`` clamped to [0, 255];
+        an image's grey levels do not depend on the batch it comes in.
     """
-    w = torch.tensor(_LUMA_RGB, dtype=rgb.dtype, device=rgb.device)
-    grey = torch.einsum("bchw,c->bhw", rgb, w)
+    # Element-wise products and sums in a fixed order, not a contraction (einsum/matmul): BLAS
+    # kernels pick their blocking by shape and CPU, so a contraction's rounding (and with it a
+    # grey level, and ORB's keypoints) could depend on the batch an image comes in.
+    wr, wg, wb = _LUMA_RGB
+    grey = rgb[:, 0] * wr + rgb[:, 1] * wg + rgb[:, 2] * wb
     return (grey * 255.0).round_().clamp_(0, 255).to(torch.uint8)
 
 

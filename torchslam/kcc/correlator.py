@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
+from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
 
@@ -808,9 +809,13 @@ def kcc_predict(
 class KernelCorrelator(nn.Module):
     """Thin module over ``kcc_train`` / ``kcc_predict`` holding σ, λ and the soft arg-max temperature.
 
-    ``learnable`` names the ones to hold as ``nn.Parameter`` (any of ``"sigma"``, ``"lam"``,
-    ``"temperature"``); the others are buffers. Gradients reach them through the kernel, the
-    filter and, with ``cfg.soft_argmax``, the soft arg-max.
+    ``learnable`` names the ones to learn (any of ``"sigma"``, ``"lam"``, ``"temperature"``). All
+    three must stay positive, so a learned one is held in log space as the parameter
+    ``log_<name>`` (``torchslam.optim.positive_parameter``, the parametrisation of
+    ``torchslam.learn.learnable``): a plain optimiser step can never make it zero or negative.
+    The others are buffers named ``sigma``, ``lam``, ``temperature``. Either way the attribute
+    ``sigma`` (``lam``, ``temperature``) reads the positive 0-d value. Gradients reach the
+    parameters through the kernel, the filter and, with ``cfg.soft_argmax``, the soft arg-max.
 
     Args:
         cfg: KCC settings.
@@ -827,11 +832,19 @@ class KernelCorrelator(nn.Module):
         if unknown:
             raise ConfigError(f"learnable: unknown names {sorted(unknown)}; valid are {sorted(self.LEARNABLE)}")
         for name in ("sigma", "lam", "temperature"):
-            value = torch.tensor(float(getattr(self.cfg, name)), dtype=dtype)
+            value = float(getattr(self.cfg, name))
             if name in learnable:
-                setattr(self, name, nn.Parameter(value))
+                self.register_parameter(f"log_{name}", positive_parameter(value, name, dtype))
             else:
-                self.register_buffer(name, value)
+                self.register_buffer(name, torch.tensor(value, dtype=dtype))
+
+    def __getattr__(self, name: str):
+        # A learned value has no attribute of its own: it is exp of its log-space parameter.
+        if name in KernelCorrelator.LEARNABLE:
+            raw = self.__dict__["_parameters"].get(f"log_{name}")
+            if raw is not None:
+                return positive_value(raw)
+        return super().__getattr__(name)
 
     def fit(self, z: Tensor) -> KCCFilter:
         """Train on (B, C, H, W) keyframe channels (see ``kcc_train``)."""

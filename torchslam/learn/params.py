@@ -23,6 +23,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import pickle
+import re
 import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -32,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import ConfigError, DataFormatError
+from ..optim import positive_parameter, positive_value
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -104,14 +107,14 @@ class LearnableParams(nn.Module):
         self.log_space = tuple(bool(b) for b in log_space)
         self.raw = nn.ParameterDict()
         for key, v, log in zip(self.names, initial, self.log_space):
-            self.raw[_slot(key)] = nn.Parameter(torch.tensor(math.log(v) if log else float(v), dtype=torch.float64))
+            self.raw[_slot(key)] = positive_parameter(v, key) if log else nn.Parameter(torch.tensor(float(v), dtype=torch.float64))
 
     def value(self, key: str) -> Tensor:
         """Return the differentiable 0-d float64 value of ``key``."""
         if key not in self.names:
             raise ConfigError(f"{key}: not learnable here; learnable keys: {', '.join(self.names)}")
         p = self.raw[_slot(key)]
-        return p.exp() if self.log_space[self.names.index(key)] else p
+        return positive_value(p) if self.log_space[self.names.index(key)] else p
 
     def resolve(self, cfg: Any, key: str) -> Tensor | float:
         """``key``'s learned value as a tensor if it is learnable here, else its float in ``cfg``."""
@@ -222,6 +225,30 @@ def save_checkpoint(path: str | os.PathLike, params: nn.Module, extra: Mapping[s
     return path
 
 
+def _load_failure(exc: Exception) -> str:
+    """One line saying why ``torch.load(weights_only=True)`` refused a file.
+
+    PyTorch's own message for a refused pickle spans several lines of advice (ending in how to
+    load the file with ``weights_only=False``, which would run its code); only the reason is kept.
+    """
+    text = str(exc)
+    if isinstance(exc, pickle.UnpicklingError) and "Weights only load failed" in text:
+        found = re.search(r"GLOBAL (\S+) was not an allowed global", text)
+        if found:
+            return (
+                f"refused as an unsafe pickle that would import {found.group(1)}; torchslam reads "
+                "checkpoints as plain data only, so that loading one never runs code"
+            )
+        reason = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else ""
+        reason = " ".join(reason.split("Check the documentation")[0].split())
+        return f"not plain pickled data: {reason}" if reason else "not plain pickled data"
+    if isinstance(exc, EOFError):
+        return "the file ends early"
+    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
+    first = first.split(". ")[0][:200]
+    return f"{exc.__class__.__name__}: {first}" if first else exc.__class__.__name__
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: no code runs).
 
@@ -237,7 +264,7 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     try:
         doc = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # pickle, zip and weights-only errors all mean "not a checkpoint"
-        raise DataFormatError(f"{path}: not a readable torchslam checkpoint ({exc.__class__.__name__}: {str(exc)[:200]})") from exc
+        raise DataFormatError(f"{path}: not a readable torchslam checkpoint ({_load_failure(exc)})") from exc
     if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
         raise DataFormatError(f"{path}: not a torchslam parameter checkpoint (no format: {CHECKPOINT_FORMAT!r})")
     if doc.get("version") != CHECKPOINT_VERSION:

@@ -1,4 +1,5 @@
-"""Batched Gauss-Newton / Levenberg-Marquardt machinery, block-sparse solves and robust kernels."""
+"""Batched Gauss-Newton / Levenberg-Marquardt machinery, block-sparse solves, robust kernels and
+the log-space parametrisation of learned positive values."""
 
 from .blocksparse import (
     BlockCholeskyFactor,
@@ -11,6 +12,7 @@ from .blocksparse import (
     solve_block_sparse,
 )
 from .lm import LMConfig, LMResult, levenberg_marquardt_se3
+from .positive import positive_parameter, positive_value
 from .robust import RobustKernel, robust_cost, robust_weight
 
 __all__ = [
@@ -25,6 +27,8 @@ __all__ = [
     "block_cholesky",
     "levenberg_marquardt_se3",
     "pcg_block_jacobi",
+    "positive_parameter",
+    "positive_value",
     "robust_cost",
     "robust_weight",
     "solve_block_sparse",
