@@ -212,3 +212,33 @@ def test_a_reader_that_closes_the_pipe_early_ends_quietly(shared_data, command):
     assert proc.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err
 
+
+
+def test_synth_refuses_a_non_empty_folder_and_overwrite_replaces_only_its_own(tmp_path, capsys):
+    small = ["--width", "64", "--height", "48", "--trajectory", "translate"]
+    out = tmp_path / "seq"
+    assert main(["synth", "--out", str(out), "--frames", "6", *small]) == 0
+    assert len(list((out / "rgb").glob("*.png"))) == 6
+    assert main(["synth", "--out", str(out), "--frames", "3", *small]) == 2
+    assert "not empty" in capsys.readouterr().err and len(list((out / "rgb").glob("*.png"))) == 6
+    # --overwrite clears the old sequence first: no stale images beside the new lists.
+    assert main(["synth", "--out", str(out), "--frames", "3", "--overwrite", *small]) == 0
+    capsys.readouterr()
+    for kind in ("rgb", "depth"):
+        listed = {ln.split()[1] for ln in (out / f"{kind}.txt").read_text().splitlines() if not ln.startswith("#")}
+        assert {f"{kind}/{p.name}" for p in (out / kind).iterdir()} == listed and len(listed) == 3
+    # A folder holding anything else, or a look-alike torchslam did not write, is never cleared.
+    (out / "notes.txt").write_text("mine\n")
+    assert main(["synth", "--out", str(out), "--overwrite", *small]) == 2
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").is_file() and (out / "rgb.txt").is_file()
+    (out / "notes.txt").unlink()
+    (out / "calibration.txt").write_text("517.3 516.5 318.6 255.3 5000 64 48\n")
+    assert main(["synth", "--out", str(out), "--overwrite", *small]) == 2
+    assert "calibration.txt was not written by torchslam synth" in capsys.readouterr().err
+    assert len(list((out / "rgb").glob("*.png"))) == 3
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["synth", "--out", str(empty), "--frames", "2", *small]) == 0
+    (tmp_path / "file").write_text("x")
+    assert main(["synth", "--out", str(tmp_path / "file"), "--frames", "2", *small]) == 2
+    assert "is not a folder" in capsys.readouterr().err

@@ -199,7 +199,10 @@ def _cmd_info(args) -> int:
 
 def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic RGB-D-inertial sequence as a TUM-layout folder")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder: new or empty (see --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace what a non-empty --out holds, only if it is a sequence folder that 'torchslam synth' "
+                   "wrote (nothing but rgb/, depth/ and its .txt files, calibration.txt its own); anything else is refused")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--trajectory", default=None, help="trajectory kind (see the synthetic generator)")
@@ -220,7 +223,7 @@ def _cmd_synth(args) -> int:
         changes["depth_noise"] = False
     cfg = config_from_dict(SyntheticConfig, changes, source="torchslam synth")
     seq = generate_sequence(cfg)
-    write_tum_folder(seq, args.out)
+    write_tum_folder(seq, args.out, overwrite=args.overwrite)
     print(f"wrote {len(seq)} frames ({cfg.width}x{cfg.height}, trajectory {cfg.trajectory}, seed {cfg.seed}) to {args.out}")
     return 0
 
