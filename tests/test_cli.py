@@ -242,3 +242,12 @@ def test_synth_refuses_a_non_empty_folder_and_overwrite_replaces_only_its_own(tm
     (tmp_path / "file").write_text("x")
     assert main(["synth", "--out", str(tmp_path / "file"), "--frames", "2", *small]) == 2
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_a_bare_torchslam_with_top_level_options_runs_the_default_job(monkeypatch):
+    import torchslam.cli as cli
+
+    seen = []
+    monkeypatch.setitem(cli.COMMANDS, "run", lambda args: seen.append(args) or 0)
+    assert main(["-v"]) == 0 and main([]) == 0
+    assert [(a.command, a.verbose, a.system, a.max_frames) for a in seen] == [("run", 1, "nislam", None), ("run", 0, "nislam", None)]

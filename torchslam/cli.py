@@ -327,8 +327,8 @@ def main(argv: Seq[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     if args.command is None:
-        # A bare `torchslam` runs the default job, the same as `torchslam run`.
-        args = parser.parse_args(["run", *(argv or [])] if argv is not None else ["run"])
+        # A bare `torchslam` (top-level options only, e.g. `-v`) runs the default job, as `torchslam run`.
+        args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "run"])
     try:
         status = COMMANDS[args.command](args)
         sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit flush
