@@ -79,3 +79,175 @@ def test_synth_writes_a_folder_that_info_and_run_read(tmp_path, capsys):
     assert info["frames"] == 4 and info["intrinsics_source"].startswith("calibration.txt")
     assert main(["synth", "--out", str(tmp_path / "x"), "--trajectory", "spiral"]) == 2
     assert "trajectory" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ parser, help examples, pipes
+
+def _help_texts() -> dict[str, str]:
+    import argparse
+
+    from torchslam.cli import build_parser
+
+    parser = build_parser()
+    texts = {"torchslam": parser.format_help()}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                texts[f"torchslam {name}"] = sub.format_help()
+    return texts
+
+
+def _set_examples(text: str) -> list[str]:
+    """Every ``--set KEY=VALUE`` example in ``text``; ``a|b`` alternatives expanded, placeholders left out."""
+    import re
+
+    found = []
+    for key, value in re.findall(r"--set[ =]+([A-Za-z_][\w.]*)=([^\s`'\"]+)", text.replace("\\|", "|")):
+        value = value.rstrip(",.;:)]")
+        for alternative in value.split("|"):
+            if key.lower() == "key" or re.fullmatch(r"[A-Z]+|<.*>|\{.*\}", alternative):
+                continue  # a placeholder, not an example
+            found.append(f"{key}={alternative}")
+    return found
+
+
+def _resolves_for_some_system(example: str) -> bool:
+    from torchslam.errors import ConfigError
+    from torchslam.slam.registry import available_systems
+    from torchslam.slam.run import resolve_config
+
+    for system in available_systems():
+        try:
+            resolve_config(system, None, [example])
+        except ConfigError:
+            continue
+        return True
+    return False
+
+
+def test_every_set_example_in_the_help_texts_and_readme_resolves():
+    from .conftest import REPO_ROOT
+
+    sources = dict(_help_texts())
+    sources["README.md"] = (REPO_ROOT / "README.md").read_text()
+    for path in sorted(REPO_ROOT.glob("configs/*.yaml")) + sorted((REPO_ROOT / "torchslam").rglob("*.yaml")):
+        sources[str(path.relative_to(REPO_ROOT))] = path.read_text()
+    examples = {(where, ex) for where, text in sources.items() for ex in _set_examples(text)}
+    assert any(where == "torchslam run" for where, _ in examples), "torchslam run --help shows no --set example"
+    wrong = sorted((where, ex) for where, ex in examples if not _resolves_for_some_system(ex))
+    assert not wrong, f"--set examples that no system's config accepts: {wrong}"
+
+
+def test_set_example_checker_rejects_a_wrong_key():
+    assert _set_examples("e.g. --set sigma=0.3 or --set attitude=imu|groundtruth, --set key=value") == [
+        "sigma=0.3", "attitude=imu", "attitude=groundtruth"]
+    assert not _resolves_for_some_system("sigma=0.3")
+    assert _resolves_for_some_system("kcc.sigma=0.3")
+
+
+def test_no_parser_takes_abbreviations():
+    import argparse
+
+    from torchslam.cli import build_parser
+
+    parser = build_parser()
+    parsers = [parser]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            parsers += list(action.choices.values())
+    assert len(parsers) == 8 and all(p.allow_abbrev is False for p in parsers)
+
+
+@pytest.mark.parametrize(
+    "argv, prog, wrong",
+    [
+        (["run", "--sytem", "gcslam"], "torchslam run", "--sytem gcslam"),
+        (["run", "--max-frame", "3"], "torchslam run", "--max-frame 3"),
+        (["batch", "synthetic", "--out", "x", "--batch-siz", "2"], "torchslam batch", "--batch-siz 2"),
+        (["eval", "--est", "a", "--gt", "b", "--alig", "none"], "torchslam eval", "--alig none"),
+        (["synth", "--out", "x", "--frame", "3"], "torchslam synth", "--frame 3"),
+    ],
+)
+def test_a_mistyped_option_prints_the_subcommands_usage(tmp_path, monkeypatch, capsys, argv, prog, wrong):
+    monkeypatch.chdir(tmp_path)  # nothing may be written, but if it were, not into the checkout
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"usage: {prog} ") and f"{prog}: error: unrecognized arguments: {wrong}" in err
+
+
+def test_verbose_counts_and_full_options_still_parse():
+    from torchslam.cli import build_parser
+
+    args = build_parser().parse_args(["-vv", "run", "--max-frames", "3", "--system", "gcslam"])
+    assert args.verbose == 2 and args.max_frames == 3 and args.system == "gcslam"
+
+
+@pytest.mark.parametrize("value", ["0", "-3"])
+def test_run_refuses_a_frame_limit_below_one_as_batch_does(tmp_path, capsys, value):
+    out = tmp_path / "run"
+    # A data folder that does not exist: the frame limit is refused before anything is read.
+    assert main(["run", "--data", str(tmp_path / "absent"), "--out", str(out), "--max-frames", value]) == 2
+    run_err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert run_err == f"torchslam run: error: --max-frames: expected an integer >= 1, got {value}"
+    assert main(["batch", "synthetic", "--out", str(tmp_path / "b"), "--max-frames", value]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == run_err.replace("torchslam run", "torchslam batch")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["info", "eval"])
+def test_a_reader_that_closes_the_pipe_early_ends_quietly(shared_data, command):
+    import os
+
+    from .conftest import REPO_ROOT
+
+    seq = shared_data / "tum_fr1_xyz"
+    argv = {"info": ["info", str(seq)], "eval": ["eval", "--est", str(seq / "groundtruth.txt"), "--gt", str(seq / "groundtruth.txt")]}
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "torchslam", *argv[command]], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    proc.stdout.close()  # the reader is gone before the first line is written (torch takes seconds to import)
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err, err
+
+
+
+def test_synth_refuses_a_non_empty_folder_and_overwrite_replaces_only_its_own(tmp_path, capsys):
+    small = ["--width", "64", "--height", "48", "--trajectory", "translate"]
+    out = tmp_path / "seq"
+    assert main(["synth", "--out", str(out), "--frames", "6", *small]) == 0
+    assert len(list((out / "rgb").glob("*.png"))) == 6
+    assert main(["synth", "--out", str(out), "--frames", "3", *small]) == 2
+    assert "not empty" in capsys.readouterr().err and len(list((out / "rgb").glob("*.png"))) == 6
+    # --overwrite clears the old sequence first: no stale images beside the new lists.
+    assert main(["synth", "--out", str(out), "--frames", "3", "--overwrite", *small]) == 0
+    capsys.readouterr()
+    for kind in ("rgb", "depth"):
+        listed = {ln.split()[1] for ln in (out / f"{kind}.txt").read_text().splitlines() if not ln.startswith("#")}
+        assert {f"{kind}/{p.name}" for p in (out / kind).iterdir()} == listed and len(listed) == 3
+    # A folder holding anything else, or a look-alike torchslam did not write, is never cleared.
+    (out / "notes.txt").write_text("mine\n")
+    assert main(["synth", "--out", str(out), "--overwrite", *small]) == 2
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").is_file() and (out / "rgb.txt").is_file()
+    (out / "notes.txt").unlink()
+    (out / "calibration.txt").write_text("517.3 516.5 318.6 255.3 5000 64 48\n")
+    assert main(["synth", "--out", str(out), "--overwrite", *small]) == 2
+    assert "calibration.txt was not written by torchslam synth" in capsys.readouterr().err
+    assert len(list((out / "rgb").glob("*.png"))) == 3
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["synth", "--out", str(empty), "--frames", "2", *small]) == 0
+    (tmp_path / "file").write_text("x")
+    assert main(["synth", "--out", str(tmp_path / "file"), "--frames", "2", *small]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+
+
+def test_a_bare_torchslam_with_top_level_options_runs_the_default_job(monkeypatch):
+    import torchslam.cli as cli
+
+    seen = []
+    monkeypatch.setitem(cli.COMMANDS, "run", lambda args: seen.append(args) or 0)
+    assert main(["-v"]) == 0 and main([]) == 0
+    assert [(a.command, a.verbose, a.system, a.max_frames) for a in seen] == [("run", 1, "nislam", None), ("run", 0, "nislam", None)]

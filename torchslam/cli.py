@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Sequence as Seq
@@ -49,11 +50,12 @@ def _add_run(sub) -> None:
                    "TensorBoard events)")
     p.add_argument("--config", default=None, metavar="FILE|PRESET", help=_config_help())
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one config value, e.g. --set sigma=0.3 or --set data.stride=2 (repeatable)")
+                   help="override one config value, e.g. --set kcc.sigma=0.3 (nislam), --set frontend=dense (gcslam) "
+                   "or --set data.stride=2 (repeatable)")
     p.add_argument("--params", default=None, metavar="CKPT",
                    help="checkpoint of learned config values (scripts/train.py), applied after --config and before --set")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (>= 1)")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -121,7 +123,7 @@ def _add_batch(sub) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set data.synthetic.frames=100 (repeatable)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop each sequence after this many frames")
+    p.add_argument("--max-frames", type=int, default=None, help="stop each sequence after this many frames (>= 1)")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--overwrite", action="store_true",
                    help="redo sequences whose folders hold a complete run of another request (system, data, "
@@ -228,7 +230,10 @@ def _cmd_info(args) -> int:
 
 def _add_synth(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic RGB-D-inertial sequence as a TUM-layout folder")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder: new or empty (see --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace what a non-empty --out holds, only if it is a sequence folder that 'torchslam synth' "
+                   "wrote (nothing but rgb/, depth/ and its .txt files, calibration.txt its own); anything else is refused")
     p.add_argument("--frames", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--trajectory", default=None, help="trajectory kind (see the synthetic generator)")
@@ -249,7 +254,7 @@ def _cmd_synth(args) -> int:
         changes["depth_noise"] = False
     cfg = config_from_dict(SyntheticConfig, changes, source="torchslam synth")
     seq = generate_sequence(cfg)
-    write_tum_folder(seq, args.out)
+    write_tum_folder(seq, args.out, overwrite=args.overwrite)
     print(f"wrote {len(seq)} frames ({cfg.width}x{cfg.height}, trajectory {cfg.trajectory}, seed {cfg.seed}) to {args.out}")
     return 0
 
@@ -303,10 +308,32 @@ class _ArgError(TorchSlamError, ValueError):
     pass
 
 
+class _SubcommandParser(argparse.ArgumentParser):
+    """A subcommand's parser: no abbreviated options, and an unknown option is its own error.
+
+    argparse hands a subcommand's unrecognised arguments back to the top-level parser, which
+    would print the top-level usage; this parser reports them with the subcommand's usage
+    (exit status 2). Abbreviations are off so that ``--max-frame`` is an error rather than a
+    silent ``--max-frames``.
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="torchslam", description="Batched RGB-D SLAM in PyTorch (GC-SLAM/FastGO, NI-SLAM/KCC).")
+    parser = argparse.ArgumentParser(
+        prog="torchslam", description="Batched RGB-D SLAM in PyTorch (GC-SLAM/FastGO, NI-SLAM/KCC).", allow_abbrev=False
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_SubcommandParser)
     for add in (_add_run, _add_batch, _add_report, _add_eval, _add_info, _add_synth, _add_calibrate_time):
         add(sub)
     return parser
@@ -331,16 +358,38 @@ def main(argv: Seq[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     if args.command is None:
-        # A bare `torchslam` runs the default job, the same as `torchslam run`.
-        args = parser.parse_args(["run", *(argv or [])] if argv is not None else ["run"])
+        # A bare `torchslam` (top-level options only, e.g. `-v`) runs the default job, as `torchslam run`.
+        args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "run"])
     try:
-        return COMMANDS[args.command](args)
+        status = COMMANDS[args.command](args)
+        sys.stdout.flush()  # a closed pipe shows here, not in the interpreter's exit flush
+        return status
+    except BrokenPipeError:
+        # The reader of our output went away (`torchslam info DIR | head`): stop quietly with the
+        # status of a process ended by SIGPIPE, as the shell's own tools do.
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except TorchSlamError as exc:
         print(f"torchslam {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"torchslam {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+# 128 + SIGPIPE: what `cat`, `grep` and other tools report when their reader closes the pipe.
+EXIT_BROKEN_PIPE = 141
+
+
+def _silence_stdout() -> None:
+    """Point stdout at the null device so that no later flush raises on the closed pipe."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (captured in tests)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
 
 
 if __name__ == "__main__":  # pragma: no cover

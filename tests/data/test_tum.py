@@ -647,3 +647,120 @@ def test_real_hololens_size(shared_data):
     info = sequence_info(root)
     assert info["image_size"] == {"width": 540, "height": 360} and info["intrinsics_source"] == "calibration.txt"
     assert math.isclose(info["depth_scale"], 1000.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# imu.txt
+
+G = 9.81
+# A camera looking along world +x, held upright: camera x right = world -y, y down = world -z.
+_R_UPRIGHT = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _imu_lines(times, gyro=(0.0, 0.0, 0.0), R_wc=_R_UPRIGHT):
+    accel = R_wc.T @ np.array([0.0, 0.0, G])  # at rest: +g along the camera's up direction
+    return "".join(f"{t:.6f} {gyro[0]} {gyro[1]} {gyro[2]} {accel[0]:.9f} {accel[1]:.9f} {accel[2]:.9f}\n" for t in times)
+
+
+def _write_imu(root: Path, body: str) -> None:
+    (root / "imu.txt").write_text("# imu data\n# timestamp gx gy gz ax ay az\n\n" + body)
+
+
+def test_imu_file_is_read_and_drives_an_attitude_stream(tmp_path):
+    from torchslam.imu import ImuData
+
+    root = tmp_path / "seq"
+    _write_seq(root, _times(4))
+    imu_t = [round(99.9 + k * 0.005, 6) for k in range(60)]
+    rate = 0.5  # rad/s about the camera's y axis, which is vertical: the specific force stays put
+    _write_imu(root, _imu_lines(imu_t, gyro=(0.0, rate, 0.0)))
+    seq = TUMSequence(root)
+    assert isinstance(seq.imu, ImuData) and len(seq.imu) == 60
+    np.testing.assert_allclose(seq.imu.timestamps.numpy(), imu_t)
+    np.testing.assert_allclose(seq.imu.gyro[:, 1].numpy(), rate)
+    np.testing.assert_allclose(seq.imu.accel.norm(dim=-1).numpy(), G, rtol=1e-9)
+    assert seq.attitude is not None and seq.attitude.source == "imu" and len(seq.attitude) == 60
+    # No ground truth: levelled by gravity, so the camera's up (its -y) is the world's +z ...
+    R = seq.attitude.R_wc
+    np.testing.assert_allclose((R[:, :, 1] @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).numpy(), -1.0, atol=1e-6)
+    # ... and the gyro turns it about that axis by rate * (t_last - t_first).
+    rel = R[0].T @ R[-1]
+    angle = math.atan2(float(rel[0, 2]), float(rel[0, 0]))
+    assert angle == pytest.approx(rate * (imu_t[-1] - imu_t[0]), abs=1e-6)
+    assert sequence_info(root)["imu_samples"] == 60
+    assert TUMSequence(tmp_path / "seq", stride=2).imu.timestamps.shape == (60,)  # the stream is kept whole
+
+
+def test_imu_start_attitude_comes_from_a_z_up_ground_truth_only(tmp_path, caplog):
+    from torchslam.geometry import quat_xyzw_to_rotmat
+
+    times = _times(4)
+    yaw = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    R_wc = yaw @ _R_UPRIGHT
+    q = Rotation.from_matrix(R_wc).as_quat()
+    gt = "".join(f"{t:.6f} 0 0 0 " + " ".join(f"{v:.9f}" for v in q) + "\n" for t in [99.85, 99.95, *times])
+    root = tmp_path / "zup"
+    _write_seq(root, times, gt=gt)
+    _write_imu(root, _imu_lines([round(99.9 + k * 0.005, 6) for k in range(40)], R_wc=R_wc))
+    seq = TUMSequence(root)
+    np.testing.assert_allclose(seq.attitude.R_wc[0].numpy(), R_wc, atol=1e-6)  # the ground truth's heading
+    # A ground truth whose world is not z-up (here y-down, as a first-camera world is) is not used.
+    R_bad = Rotation.from_euler("x", 90, degrees=True).as_matrix() @ R_wc
+    q_bad = Rotation.from_matrix(R_bad).as_quat()
+    gt_bad = "".join(f"{t:.6f} 0 0 0 " + " ".join(f"{v:.9f}" for v in q_bad) + "\n" for t in [99.85, 99.95, *times])
+    root = tmp_path / "ydown"
+    _write_seq(root, times, gt=gt_bad)
+    _write_imu(root, _imu_lines([round(99.9 + k * 0.005, 6) for k in range(40)], R_wc=R_wc))
+    with caplog.at_level(logging.WARNING, logger="torchslam.data.tum"):
+        seq = TUMSequence(root)
+    assert "not z-up" in caplog.text and "imu.txt" in caplog.text
+    up = seq.attitude.R_wc[0] @ quat_xyzw_to_rotmat(torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64))
+    np.testing.assert_allclose(up[:, 1].numpy(), [0.0, 0.0, -1.0], atol=1e-6)  # levelled by gravity instead
+
+
+@pytest.mark.parametrize(
+    "body, line, match",
+    [
+        ("100.0 0 0 0 0 0 9.81\n100.01 0 0 0 0 9.81\n", 5, "expected 7 values 'timestamp gx gy gz ax ay az', got 6"),
+        ("100.0 0 0 0 0 0 9.81\n100.01 0 0 x 0 0 9.81\n", 5, "not a number"),
+        ("100.0 0 0 0 0 0 9.81\n100.01 0 0 0 nan 0 9.81\n", 5, "NaN or infinite IMU value"),
+        ("100.0 0 0 0 0 0 9.81\n100.01 0 inf 0 0 0 9.81\n", 5, "NaN or infinite IMU value"),
+        ("100.0 0 0 0 0 0 9.81\n100.0 0 0 0 0 0 9.81\n", 5, "duplicate timestamp"),
+        ("100.01 0 0 0 0 0 9.81\n100.0 0 0 0 0 0 9.81\n", 5, "decreasing timestamp"),
+        ("100.0 0 0 0 0 0 9.81\nnan 0 0 0 0 0 9.81\n", 5, "timestamp is NaN or infinite"),
+    ],
+)
+def test_bad_imu_file_names_the_line(tmp_path, body, line, match):
+    _write_seq(tmp_path / "seq", _times(2))
+    _write_imu(tmp_path / "seq", body)
+    with pytest.raises(DataFormatError, match=re.escape(f"imu.txt:{line}: {match}")):
+        TUMSequence(tmp_path / "seq")
+
+
+def test_imu_file_without_samples(tmp_path):
+    _write_seq(tmp_path / "seq", _times(2))
+    _write_imu(tmp_path / "seq", "# nothing else\n")
+    with pytest.raises(DataFormatError, match=r"imu\.txt: no IMU samples"):
+        TUMSequence(tmp_path / "seq")
+    (tmp_path / "seq" / "imu.txt").unlink()
+    seq = TUMSequence(tmp_path / "seq")
+    assert seq.imu is None and seq.attitude is None
+
+
+def test_synth_folder_imu_reads_back_as_the_in_memory_stream(tmp_path):
+    from torchslam.data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
+    from torchslam.imu import attitude_errors
+
+    mem = generate_sequence(SyntheticConfig(frames=20, width=64, height=48, trajectory="handheld"))
+    tum = TUMSequence(write_tum_folder(mem, tmp_path / "synth"))
+    assert torch.allclose(tum.imu.timestamps, mem.imu.timestamps, atol=1e-6)
+    assert torch.allclose(tum.imu.gyro, mem.imu.gyro, atol=1e-8) and torch.allclose(tum.imu.accel, mem.imu.accel, atol=1e-8)
+    R_mem, ok_mem = mem.attitude.at(mem.timestamps)
+    R_tum, ok_tum = tum.attitude.at(tum.timestamps)
+    assert bool(ok_mem.all()) and bool(ok_tum.all())
+    # Same filter, start and samples; the files round stamps to 1 us and values to 1e-9.
+    assert (R_tum - R_mem).abs().max() < 1e-5
+    # Frame convention and gravity sign: the stream follows the true attitude (a flipped gravity
+    # or a body frame other than the camera's would be tens of degrees off).
+    tilt, yaw = attitude_errors(R_tum, mem.groundtruth.T_wc[:, :3, :3])
+    assert float(tilt.abs().max()) < math.radians(0.5) and float(yaw.abs().max()) < math.radians(0.5)

@@ -83,3 +83,32 @@ def test_report_errors_name_the_path(tmp_path, capsys):
     empty.mkdir()
     with pytest.raises(DataFormatError, match="no summary.json and no run folders"):
         load_batch(empty)
+
+
+def test_report_skips_folders_that_are_not_runs_and_says_how_many(tmp_path, caplog):
+    import logging
+
+    root = tmp_path / "runs"
+    assert main(["run", "--data", "synthetic", "--out", str(root / "run"), "--no-progress", "--no-tensorboard", *SMALL]) == 0
+    # What scripts/train.py writes: a metrics.json of a training, not of a run.
+    train = root / "train-kcc"
+    train.mkdir()
+    (train / "metrics.json").write_text(json.dumps({"what": "kcc", "train_config": {}, "val_ate_rmse_m": 0.01}))
+    (root / "notes").mkdir()
+    (root / "other").mkdir()
+    (root / "other" / "metrics.json").write_text(json.dumps({"system": "orbslam", "frames": 3}))
+    with caplog.at_level(logging.WARNING, logger="torchslam.slam.report"):
+        doc = load_batch(root)
+    assert [r["name"] for r in doc["rows"]] == ["run"] and doc["rows"][0]["status"] == "ok"
+    assert doc["skipped"] == ["notes", "other", "train-kcc"]
+    assert "skipped 3 folder(s) that are not runs: notes, other, train-kcc" in caplog.text
+    md = write_report(root).read_text()
+    assert "Skipped 3 sub-folder(s) that are not runs" in md and "train-kcc" not in md.split("## Sequences")[1].split("Skipped")[0]
+    # A second report does not count its own plots folder.
+    assert load_batch(root)["skipped"] == ["notes", "other", "train-kcc"]
+    only_training = tmp_path / "training"
+    only_training.mkdir()
+    (only_training / "train-kcc").mkdir()
+    (only_training / "train-kcc" / "metrics.json").write_text(json.dumps({"what": "kcc"}))
+    with pytest.raises(DataFormatError, match=r"no run folders with metrics.json \(1 sub-folders are not runs: train-kcc\)"):
+        load_batch(only_training)

@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shutil
 import threading
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -56,6 +57,7 @@ from .trajectory import Trajectory, write_tum_trajectory
 
 __all__ = [
     "SYNTHETIC_TRAJECTORIES",
+    "TUM_FOLDER_ENTRIES",
     "RenderOutput",
     "Scene",
     "SceneRenderer",
@@ -1064,7 +1066,58 @@ def generate_sequence(cfg: SyntheticConfig | None = None, device: torch.device |
     return SyntheticSequence(cfg, device)
 
 
-def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike) -> Path:
+# What ``write_tum_folder`` writes, and the comment its calibration.txt (written first) starts with.
+TUM_FOLDER_ENTRIES = ("rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "calibration.txt", "imu.txt")
+_CALIBRATION_MARK = "# fx fy cx cy depth_scale width height   (torchslam synthetic pinhole camera"
+
+
+def _prepare_tum_folder(out: Path, overwrite: bool) -> None:
+    """Make ``out`` an empty folder; with ``overwrite`` clear a folder that ``write_tum_folder`` wrote.
+
+    A folder "looks written by torchslam" when it holds nothing but ``TUM_FOLDER_ENTRIES``, its
+    ``rgb/`` and ``depth/`` hold only PNG files, and its ``calibration.txt`` (the first file the
+    writer writes, so an interrupted write is recognised too) carries the writer's comment.
+    Anything else is refused rather than deleted.
+    """
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    if not out.is_dir():
+        return
+    entries = sorted(out.iterdir())
+    if not entries:
+        return
+    if not overwrite:
+        raise ConfigError(
+            f"{out}: folder is not empty ({len(entries)} entries); pass --overwrite (overwrite=True) to replace "
+            "a sequence that torchslam synth wrote there, or choose a new folder"
+        )
+    foreign = [p.name for p in entries if p.name not in TUM_FOLDER_ENTRIES]
+    foreign += [
+        f"{sub}/{p.name}" for sub in ("rgb", "depth") if (out / sub).is_dir()
+        for p in sorted((out / sub).iterdir()) if p.suffix != ".png" or not p.is_file()
+    ]
+    foreign += [name for name in ("rgb", "depth") if (out / name).exists() and not (out / name).is_dir()]
+    calib = out / "calibration.txt"
+    try:
+        marked = calib.read_text(errors="replace").startswith(_CALIBRATION_MARK)
+    except OSError:
+        marked = False
+    if foreign or not marked:
+        why = f"it holds {', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}" if foreign else (
+            "its calibration.txt was not written by torchslam synth")
+        raise ConfigError(
+            f"{out}: not cleared for --overwrite: {why}; only an empty folder or a sequence folder that "
+            "torchslam synth wrote is replaced"
+        )
+    for p in entries:
+        if p.is_dir():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    logger.info("cleared %s (%d entries) to write a new sequence", out, len(entries))
+
+
+def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike, overwrite: bool = False) -> Path:
     """Write a synthetic sequence as a TUM RGB-D folder.
 
     Layout: ``rgb/<t>.png`` (8-bit colour), ``depth/<t>.png`` (16-bit, metres x depth_scale,
@@ -1072,20 +1125,33 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike) -> Path
     (``t tx ty tz qx qy qz qw``, camera-to-world), ``calibration.txt`` (``fx fy cx cy
     depth_scale width height``) and ``imu.txt`` (``timestamp gx gy gz ax ay az``; rad/s and
     m/s^2 in the IMU frame, which is the camera frame). Timestamps are written with 6 decimals.
+    ``torchslam.data.TUMSequence`` reads all of it back, ``imu.txt`` included.
 
     Args:
         seq: the sequence.
-        out_dir: folder to create or fill.
+        out_dir: folder to create, or an empty folder.
+        overwrite: replace the contents of a non-empty ``out_dir`` if it is a sequence folder this
+            function wrote (nothing but its files, see ``TUM_FOLDER_ENTRIES``); anything else is
+            refused.
 
     Returns:
         The folder path.
+
+    Raises:
+        ConfigError: ``out_dir`` is a file, or is not empty (without ``overwrite``, or with it
+            when it does not look like a folder this function wrote).
     """
     import cv2  # only the writer needs OpenCV
 
     out = Path(out_dir)
+    _prepare_tum_folder(out, overwrite)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     cfg, cam = seq.cfg, seq.camera
+    (out / "calibration.txt").write_text(
+        f"{_CALIBRATION_MARK}; raw/depth_scale = metres; 0 = invalid)\n"
+        f"{cam.fx:.6f} {cam.fy:.6f} {cam.cx:.6f} {cam.cy:.6f} {cfg.depth_scale:g} {cam.width} {cam.height}\n"
+    )
     stamps = [f"{float(t):.6f}" for t in seq.timestamps]
     bs = cfg.batch_size
     for start in range(0, len(seq), bs):
@@ -1105,10 +1171,6 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike) -> Path
         lines += [f"{s} {kind}/{s}.png" for s in stamps]
         (out / f"{kind}.txt").write_text("\n".join(lines) + "\n")
     write_tum_trajectory(out / "groundtruth.txt", seq.groundtruth, header=f"ground truth trajectory\nfile: '{source}'")
-    (out / "calibration.txt").write_text(
-        "# fx fy cx cy depth_scale width height   (torchslam synthetic pinhole camera; raw/depth_scale = metres; 0 = invalid)\n"
-        f"{cam.fx:.6f} {cam.fy:.6f} {cam.cx:.6f} {cam.cy:.6f} {cfg.depth_scale:g} {cam.width} {cam.height}\n"
-    )
     imu = seq.imu
     rows = torch.cat([imu.timestamps[:, None], imu.gyro, imu.accel], dim=1).tolist()
     lines = [

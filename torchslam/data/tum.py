@@ -2,8 +2,22 @@
 
 A TUM RGB-D folder holds ``rgb.txt`` and ``depth.txt`` (lines ``timestamp path``, paths relative
 to the folder), optionally ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``, camera-to-world),
-``accelerometer.txt`` (``timestamp ax ay az``, m/s^2) and ``calibration.txt`` (see
-``torchslam.data.calibration``). Lines starting with ``#`` and blank lines are skipped.
+``accelerometer.txt`` (``timestamp ax ay az``, m/s^2), ``calibration.txt`` (see
+``torchslam.data.calibration``) and ``imu.txt`` (below). Lines starting with ``#`` and blank
+lines are skipped.
+
+``imu.txt`` is an IMU stream, one sample a line: ``timestamp gx gy gz ax ay az``, seconds, the
+angular rate in rad/s and the specific force in m/s^2, both in the camera frame (x right, y down,
+z forward; the IMU is taken to be aligned with the camera), with the sign an accelerometer
+measures: at rest it reads +g along the camera's *up* direction, ``R_wc^T (0, 0, 9.81)`` in a
+z-up world. ``torchslam synth`` writes this file. The stream is exposed as ``imu`` and, through
+the attitude filter of ``torchslam.imu.ahrs_attitude``, as ``attitude`` (source "imu"), as the
+synthetic sequence exposes its own; NI-SLAM's ``attitude=imu`` (and ``auto``) use it. Like the
+in-memory synthetic sequence, the filter starts at the ground-truth rotation at the first IMU
+sample where ``groundtruth.txt`` has one and its world is z-up (the filter's world; checked
+against the up that the first 0.1 s of specific force shows); otherwise it starts levelled by
+gravity (roll and pitch from that specific force) with zero yaw. Only the start fixes the world
+frame: every rotation after it comes from the IMU alone.
 
 Choices this reader makes:
     * Colour and depth stamps are paired one-to-one, closest pairs first, within ``max_gap``
@@ -42,6 +56,7 @@ from torch import Tensor
 
 from ..errors import ConfigError, DataFormatError
 from ..geometry import PinholeCamera
+from ..imu import AttitudeStream, ImuData, ahrs_attitude
 from .calibration import Calibration, resolve_calibration
 from .frame import Frame, associate_timestamps
 from .trajectory import Trajectory, read_tum_trajectory
@@ -54,6 +69,12 @@ RGB_LIST = "rgb.txt"
 DEPTH_LIST = "depth.txt"
 GROUNDTRUTH_FILE = "groundtruth.txt"
 ACCELEROMETER_FILE = "accelerometer.txt"
+IMU_FILE = "imu.txt"
+
+# Largest angle between the ground truth's world up and the up the IMU's specific force shows at
+# the start for the ground truth to start the attitude filter (the motion's own acceleration
+# tilts the measured up by a few degrees; a world that is not z-up is tens of degrees off).
+_IMU_START_MAX_TILT_DEG = 20.0
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SIGNATURE = b"\xff\xd8"
@@ -140,18 +161,37 @@ def _read_stamped_list(path: Path, columns: str) -> tuple[np.ndarray, list[list[
     return np.asarray(stamps, dtype=np.float64), fields, lines
 
 
-def _read_accelerometer(path: Path) -> tuple[Tensor, Tensor]:
-    """Read ``timestamp ax ay az`` lines into (M,) float64 seconds and (M, 3) float64 m/s^2."""
-    stamps, fields, lines = _read_stamped_list(path, "timestamp ax ay az")
-    values = np.zeros((len(fields), 3), dtype=np.float64)
+def _read_stamped_values(path: Path, columns: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``timestamp v1 v2 ...`` lines of finite numbers (``_read_stamped_list``'s checks too).
+
+    Returns:
+        timestamps: (M,) float64 seconds; values: (M, C) float64, C = the columns after the stamp.
+    """
+    stamps, fields, lines = _read_stamped_list(path, columns)
+    values = np.zeros((len(fields), len(columns.split()) - 1), dtype=np.float64)
     for k, (row, lineno) in enumerate(zip(fields, lines)):
         try:
             values[k] = [float(v) for v in row]
         except ValueError as exc:
             raise DataFormatError(f"{path}:{lineno}: not a number ({exc})") from exc
         if not np.isfinite(values[k]).all():
-            raise DataFormatError(f"{path}:{lineno}: NaN or infinite acceleration")
+            raise DataFormatError(f"{path}:{lineno}: NaN or infinite {what}")
+    return stamps, values
+
+
+def _read_accelerometer(path: Path) -> tuple[Tensor, Tensor]:
+    """Read ``timestamp ax ay az`` lines into (M,) float64 seconds and (M, 3) float64 m/s^2."""
+    stamps, values = _read_stamped_values(path, "timestamp ax ay az", "acceleration")
     return torch.from_numpy(stamps), torch.from_numpy(values)
+
+
+def _read_imu(path: Path) -> ImuData:
+    """Read ``imu.txt`` (``timestamp gx gy gz ax ay az``; rad/s, m/s^2, camera frame) into ImuData."""
+    stamps, values = _read_stamped_values(path, "timestamp gx gy gz ax ay az", "IMU value")
+    if stamps.size == 0:
+        raise DataFormatError(f"{path}: no IMU samples (expected lines 'timestamp gx gy gz ax ay az')")
+    values_t = torch.from_numpy(values)
+    return ImuData(torch.from_numpy(stamps), values_t[:, :3].contiguous(), values_t[:, 3:].contiguous())
 
 
 def _check_int(value, name: str, minimum: int) -> int:
@@ -207,7 +247,7 @@ class TUMSequence:
 
     Args:
         root: the sequence folder (``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``,
-            ``accelerometer.txt``, ``calibration.txt``).
+            ``accelerometer.txt``, ``calibration.txt``, ``imu.txt``).
         max_gap: largest |t_rgb - t_depth| for a colour and a depth image to pair, seconds.
         stride: keep every ``stride``-th associated frame.
         start: first associated frame kept (index into the associated pairs).
@@ -236,13 +276,15 @@ class TUMSequence:
         gt_bracket_gap: (N,) float64 spacing of the two ground-truth poses bracketing each frame,
             seconds (inf outside the ground-truth span or without ground truth).
         accelerometer: ((M,) float64 seconds, (M, 3) float64 m/s^2) or None.
+        imu: the ``imu.txt`` stream (gyro rad/s, specific force m/s^2, camera frame), or None.
+        attitude: the AHRS attitude of ``imu`` (source "imu"; see the module docstring), or None.
         skipped: (index, reason) of frames skipped by the latest iteration (corrupt images, or
             images of the wrong size or format after the first frame; see ``__iter__``).
 
     Raises:
         DataFormatError: naming the file and line for a missing list, a malformed or
-            non-increasing list line, a listed image that does not exist, bad ground truth or
-            calibration, or no associated frames.
+            non-increasing list line (``imu.txt`` included), a listed image that does not exist,
+            bad ground truth or calibration, or no associated frames.
         ConfigError: naming the argument for a bad ``max_gap``, ``stride``, ``start``, ``end``,
             ``prefetch``, ``invalid_depth`` or ``gt_max_gap``.
     """
@@ -361,7 +403,39 @@ class TUMSequence:
         self.accelerometer: tuple[Tensor, Tensor] | None = None
         if (root / ACCELEROMETER_FILE).is_file():
             self.accelerometer = _read_accelerometer(root / ACCELEROMETER_FILE)
+        self.imu: ImuData | None = None
+        self.attitude: AttitudeStream | None = None
+        if (root / IMU_FILE).is_file():
+            self.imu = _read_imu(root / IMU_FILE)
+            self.attitude = ahrs_attitude(self.imu, self._imu_start_attitude(root / IMU_FILE))
         self.skipped: list[tuple[int, str]] = []
+
+    def _imu_start_attitude(self, path: Path) -> Tensor | None:
+        """The ground-truth rotation at the first IMU sample where it may start the filter, else None.
+
+        The filter needs a z-up world: a ground truth whose world up differs from the up that the
+        first 0.1 s of specific force shows by more than ``_IMU_START_MAX_TILT_DEG`` is not used
+        (with a warning), and the filter starts levelled by gravity instead.
+        """
+        imu, gt = self.imu, self.groundtruth_raw
+        if imu is None or gt is None:
+            return None
+        T0, ok = gt.interpolate(imu.timestamps[:1], max_gap=self.gt_max_gap)
+        if not bool(ok[0]):
+            return None
+        R0 = T0[0, :3, :3]
+        first = (imu.timestamps - imu.timestamps[0]) <= 0.1
+        f_dir = imu.accel[first] / imu.accel[first].norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        up_w = R0 @ f_dir.mean(0)
+        cos_tilt = float(up_w[2]) / max(float(up_w.norm()), 1e-12)
+        tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
+        if tilt_deg > _IMU_START_MAX_TILT_DEG:
+            logger.warning(
+                "%s: the ground truth's world is not z-up (the measured up is %.0f deg off its +z at the first IMU "
+                "sample); the attitude filter starts levelled by gravity with zero yaw instead", path, tilt_deg,
+            )
+            return None
+        return R0
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])
@@ -549,7 +623,8 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         (poses in groundtruth.txt, 0 without it), ``gt_frames_covered``, ``gt_coverage_fraction``,
         ``gt_frames_interpolated_across_gap`` (covered frames whose bracketing poses are more
         than 1.5 times the median ground-truth spacing apart), ``gt_largest_gap_s``,
-        ``gt_max_gap_allowed_s``; ``accelerometer_samples`` (0 without accelerometer.txt).
+        ``gt_max_gap_allowed_s``; ``accelerometer_samples`` (0 without accelerometer.txt);
+        ``imu_samples`` (0 without imu.txt).
 
     Raises:
         DataFormatError / ConfigError: as ``TUMSequence``.
@@ -583,6 +658,7 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         "gt_largest_gap_s": None,
         "gt_max_gap_allowed_s": seq.gt_max_gap,
         "accelerometer_samples": 0 if seq.accelerometer is None else int(seq.accelerometer[0].shape[0]),
+        "imu_samples": 0 if seq.imu is None else len(seq.imu),
     }
     gt = seq.groundtruth_raw
     if gt is not None:

@@ -18,8 +18,12 @@ import torch
 from torch import Tensor
 
 from ..data.frame import Frame, Sequence
+from ..errors import ConfigError
 
-__all__ = ["RunResult", "SlamSystem", "StepReport", "SystemOutput", "empty_output", "frame_poses", "resample_poses", "run_sequence"]
+__all__ = [
+    "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "empty_output", "frame_poses",
+    "resample_poses", "run_sequence",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -95,6 +99,17 @@ class RunResult:
     @property
     def fps_compute(self) -> float:
         return self.frames_processed / self.compute_s if self.compute_s > 0 else 0.0
+
+
+def check_max_frames(value: Any, name: str = "--max-frames") -> int | None:
+    """Validate a frame limit of ``run`` or ``batch``: None (all frames) or an integer >= 1.
+
+    Raises:
+        ConfigError: naming ``name`` for 0, a negative number or a non-integer.
+    """
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ConfigError(f"{name}: expected an integer >= 1, got {value!r}")
+    return value
 
 
 def run_sequence(

@@ -66,7 +66,7 @@ from ..data.synthetic import SYNTHETIC_TRAJECTORIES, SyntheticConfig, generate_s
 from ..data.trajectory import read_tum_trajectory, write_tum_trajectory
 from ..environment import environment_info
 from ..errors import ConfigError, TorchSlamError
-from .base import RunResult, run_sequence
+from .base import RunResult, check_max_frames, run_sequence
 from .lockstep import run_lockstep
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -697,8 +697,7 @@ def _check_options(options: BatchOptions) -> None:
         raise ConfigError(f"--batch-size: expected an integer >= 1, got {options.batch_size!r}")
     if options.device not in ("cpu", "cuda"):
         raise ConfigError(f"--device: expected 'cpu' or 'cuda', got {options.device!r}")
-    if options.max_frames is not None and (isinstance(options.max_frames, bool) or not isinstance(options.max_frames, int) or options.max_frames < 1):
-        raise ConfigError(f"--max-frames: expected an integer >= 1, got {options.max_frames!r}")
+    check_max_frames(options.max_frames)
     if options.device == "cuda":
         import torch
 

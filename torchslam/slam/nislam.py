@@ -123,7 +123,8 @@ class NISlamConfig:
     """Settings of NI-SLAM. Defaults are the paper's where it gives them (σ, λ, T_c, T_d, T_K, T_M).
 
     Attributes:
-        attitude: where rotations come from: "imu" (the sequence's IMU through the AHRS),
+        attitude: where rotations come from: "imu" (the sequence's IMU through the AHRS: the
+            synthetic sequence's, or a TUM-layout folder's ``imu.txt``),
             "simulated" (gyro + accelerometer simulated on ground truth with noise and bias
             drift, then the same AHRS), "groundtruth" (what the NI-SLAM authors fed on TUM,
             which has no gyroscope), or "auto" (imu where the sequence has an IMU stream, else
@@ -345,7 +346,8 @@ def attitude_stream(sequence: Sequence, cfg: NISlamConfig) -> AttitudeStream:
     if choice == "imu":
         if imu_stream is None:
             raise ConfigError(
-                f"attitude=imu: {sequence.name} has no IMU stream (TUM RGB-D has no gyroscope); "
+                f"attitude=imu: {sequence.name} has no IMU stream (a TUM-layout folder needs an imu.txt; "
+                "TUM RGB-D has no gyroscope); "
                 "use attitude=simulated or attitude=groundtruth"
             )
         return imu_stream

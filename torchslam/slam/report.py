@@ -1,7 +1,8 @@
 """Turn a batch folder into a Markdown report with plots: the library behind ``torchslam report``.
 
 The report reads ``summary.json`` (or, for a folder of plain ``torchslam run`` folders, every
-sub-folder holding a ``metrics.json``) and writes ``report.md`` beside it, with its images in
+sub-folder holding a ``metrics.json`` of a known system; other sub-folders, such as a training
+folder of ``scripts/train.py``, are skipped and counted) and writes ``report.md`` beside it, with its images in
 ``report/``: ATE RMSE per sequence, frames/s per sequence, and a top view of every sequence's
 estimated trajectory, aligned onto the ground truth (rigidly, as the ATE is computed) where the
 ground truth can be found. "Top" is the plane of the two world axes along which the ground truth
@@ -43,6 +44,9 @@ ASSETS = "report"
 def load_batch(batch_dir: str | os.PathLike) -> dict[str, Any]:
     """Read a batch folder's ``summary.json``, or build the same document from its run folders.
 
+    Built from run folders, the document also lists under ``skipped`` the sub-folders that are
+    not runs (no ``metrics.json`` of a known system), and a warning counts them.
+
     Raises:
         DataFormatError: ``batch_dir`` is not a folder, its ``summary.json`` is malformed, or it
             holds neither a summary nor any run folder.
@@ -62,24 +66,56 @@ def load_batch(batch_dir: str | os.PathLike) -> dict[str, Any]:
             if not isinstance(row, dict) or not isinstance(row.get("name"), str) or "status" not in row:
                 raise DataFormatError(f"{path}: rows[{i}]: expected a mapping with 'name' and 'status'")
         return doc
-    rows, systems = [], set()
-    for i, folder in enumerate(sorted(p for p in root.iterdir() if (p / "metrics.json").is_file())):
-        try:
-            metrics = json.loads((folder / "metrics.json").read_text())
-        except ValueError as exc:
-            raise DataFormatError(f"{folder / 'metrics.json'}: not valid JSON ({exc})") from exc
+    rows, systems, skipped = [], set(), []
+    for folder in sorted(p for p in root.iterdir() if p.is_dir() and p.name != ASSETS and not p.name.startswith(".")):
+        metrics = _run_metrics(folder)
+        if metrics is None:
+            skipped.append(folder.name)
+            continue
         systems.add(str(metrics.get("system")))
         status = "interrupted" if metrics.get("interrupted") else "ok"
-        src = BatchSource(index=i, name=folder.name, spec=str(metrics.get("data", "")), source=str(metrics.get("data", "")))
+        data = str(metrics.get("data", ""))
+        src = BatchSource(index=len(rows), name=folder.name, spec=data, source=data)
         rows.append(summary_row(src, status, metrics))
     if not rows:
-        raise DataFormatError(f"{root}: no summary.json and no run folders with metrics.json")
+        why = f" ({len(skipped)} sub-folders are not runs: {_names(skipped)})" if skipped else ""
+        raise DataFormatError(f"{root}: no summary.json and no run folders with metrics.json{why}")
+    if skipped:
+        logger.warning("%s: skipped %d folder(s) that are not runs: %s", root, len(skipped), _names(skipped))
     return {
         "system": ", ".join(sorted(systems)),
         "engine": None,
         "rows": rows,
         "totals": summary_totals(rows, sum(r["wall_s"] or 0.0 for r in rows)),
+        "skipped": skipped,
     }
+
+
+def _run_metrics(folder: Path) -> dict[str, Any] | None:
+    """The ``metrics.json`` of a run folder, or None for a folder that is not a run.
+
+    A run folder holds a ``metrics.json`` whose ``system`` is a known system; a training folder
+    (``scripts/train.py``) or anything else is not one.
+
+    Raises:
+        DataFormatError: ``metrics.json`` is not valid JSON.
+    """
+    from .registry import KNOWN_SYSTEMS
+
+    path = folder / "metrics.json"
+    if not path.is_file():
+        return None
+    try:
+        metrics = json.loads(path.read_text())
+    except ValueError as exc:
+        raise DataFormatError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(metrics, dict) or metrics.get("system") not in KNOWN_SYSTEMS:
+        return None
+    return metrics
+
+
+def _names(names: list[str], limit: int = 5) -> str:
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
 def find_groundtruth(run_dir: str | os.PathLike, metrics: Mapping[str, Any]) -> Trajectory | None:
@@ -228,6 +264,10 @@ def write_report(batch_dir: str | os.PathLike) -> Path:
     if details:
         lines += [", ".join(details) + (" (interrupted)" if doc.get("interrupted") else ""), ""]
     lines += ["## Sequences", "", format_table(rows, totals if isinstance(totals, dict) and "fps_aggregate" in totals else None)]
+    skipped = doc.get("skipped") or []
+    if skipped:
+        lines += [f"Skipped {len(skipped)} sub-folder(s) that are not runs (no metrics.json of a known system): "
+                  f"{_names(skipped)}.", ""]
 
     with_ate = [(r["name"], r["ate_rmse_m"] * 100) for r in rows if r.get("ate_rmse_m") is not None]
     lines += ["## ATE RMSE per sequence", ""]

@@ -17,7 +17,7 @@ from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
 from ..errors import ConfigError
-from .base import run_sequence
+from .base import check_max_frames, run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
 from .progress import log_final, log_hparams, progress_callback
@@ -83,8 +83,8 @@ def resolve_config(
     """Merge the system's defaults, its YAML file, a learned-parameter checkpoint and ``--set`` overrides.
 
     The YAML file holds the system's keys at the top level and an optional ``data:`` section;
-    ``--set data.stride=2`` and ``--set sigma=0.3`` address the two parts. Sections merge key
-    by key, so ``--set kcc.sigma=0.3`` keeps the file's other ``kcc`` values. ``params`` (a
+    ``--set data.stride=2`` and ``--set kcc.sigma=0.3`` address the two parts. Sections merge key
+    by key, so the latter keeps the file's other ``kcc`` values. ``params`` (a
     ``torchslam.learn`` checkpoint of config values, e.g. ``kcc.sigma``) is applied after the
     file and before ``--set``; a checkpoint of another system or with unknown keys raises a
     ConfigError naming the file and the key.
@@ -164,9 +164,11 @@ def run(
         The metrics written to ``metrics.json``.
 
     Raises:
+        ConfigError: for a bad ``max_frames`` (before anything is read) or config.
         OutputFolderError: ``out`` is a file, not writable, or not empty (without ``overwrite``).
         OutputWriteError: some output files could not be written; the others were.
     """
+    check_max_frames(options.max_frames)
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     out = Path(options.out)
