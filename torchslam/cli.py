@@ -8,13 +8,13 @@ exit with status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 from typing import Sequence as Seq
 
 from .errors import TorchSlamError
+from .strictjson import dumps as strict_dumps
 
 logger = logging.getLogger("torchslam")
 
@@ -144,14 +144,26 @@ def _cmd_report(args) -> int:
 
 
 def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)")
+    p = sub.add_parser(
+        "eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)",
+        description="With the defaults the figures are evo's (evo_ape/evo_rpe tum GT EST -a, delta 1 frame) and "
+        "the ATE equals the ate_rmse_m that 'torchslam run' writes to metrics.json for a sequence's raw "
+        "groundtruth.txt.",
+    )
     p.add_argument("--est", required=True, help="estimated trajectory, TUM format")
     p.add_argument("--gt", required=True, help="ground-truth trajectory, TUM format")
-    p.add_argument("--align", default="se3", choices=["se3", "sim3", "none"], help="alignment before ATE (default se3)")
-    p.add_argument("--max-dt", type=float, default=0.02, help="largest timestamp gap when matching poses, seconds")
+    p.add_argument("--align", default="se3", choices=["se3", "sim3", "none"],
+                   help="alignment before ATE and RPE (default se3, as evo's -a; sim3 as -as)")
+    p.add_argument("--max-dt", type=float, default=0.01,
+                   help="largest timestamp gap when matching poses, seconds (default 0.01, evo's --t_max_diff "
+                   "and the headline's)")
+    p.add_argument("--association", default="nearest", choices=["nearest", "unique"],
+                   help="nearest: evo's nearest-timestamp rule (default, the headline's); unique: the TUM "
+                   "benchmark's one-to-one rule")
+    p.add_argument("--offset", type=float, default=0.0, help="seconds added to the estimate's stamps before matching (default 0)")
     p.add_argument("--delta", type=float, default=1, help="RPE step (default 1)")
-    p.add_argument("--delta-unit", default="frames", choices=["frames", "seconds"], help="unit of --delta")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--delta-unit", default="frames", choices=["frames", "seconds"], help="unit of --delta (default frames)")
+    p.add_argument("--json", action="store_true", help="print strict JSON instead of a table (default: table)")
 
 
 def _cmd_eval(args) -> int:
@@ -163,10 +175,11 @@ def _cmd_eval(args) -> int:
     delta = int(args.delta) if args.delta_unit == "frames" else args.delta
     if args.delta_unit == "frames" and delta != args.delta:
         raise _ArgError(f"--delta {args.delta}: a step in frames must be a whole number")
-    a = ate(est, gt, align=args.align, max_dt=args.max_dt)
-    r = rpe(est, gt, delta=delta, unit=args.delta_unit, align=args.align, max_dt=args.max_dt)
+    match = {"max_dt": args.max_dt, "offset": args.offset, "association": args.association}
+    a = ate(est, gt, align=args.align, **match)
+    r = rpe(est, gt, delta=delta, unit=args.delta_unit, align=args.align, **match)
     if args.json:
-        print(json.dumps(metrics_dict(a, r), indent=2))
+        print(strict_dumps(metrics_dict(a, r)))
     else:
         print(format_report(a, r))
     return 0
@@ -183,7 +196,7 @@ def _cmd_info(args) -> int:
 
     info = sequence_info(args.dir)
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(strict_dumps(info))
         return 0
     width = max(len(k) for k in info)
     for k, v in info.items():
@@ -254,7 +267,7 @@ def _cmd_calibrate_time(args) -> int:
         max_pairs=args.pairs,
     )
     if args.json:
-        print(json.dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}, indent=2))
+        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}))
         return 0
     print(f"sequence          {seq.name}")
     print(f"attitude source   {stream.source}")

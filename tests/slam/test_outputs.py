@@ -1,5 +1,8 @@
-"""Run-folder outputs: the voxel grid of map.ply."""
+"""Run-folder outputs: the voxel grid of map.ply, the headline ATE, strict JSON."""
 
+import json
+
+import pytest
 import torch
 
 from torchslam.slam.outputs import voxel_downsample
@@ -32,3 +35,70 @@ def test_voxel_downsample_equals_rowwise_unique_reference():
     wide = torch.tensor([[0.0, 0.0, 0.0], [1e7, 1e7, 1e7], [1e7, 1e7, 1e7]], dtype=torch.float64)
     P, _ = voxel_downsample(wide, torch.zeros(3, 3), 1e-4)
     assert P.shape == (2, 3)
+
+
+# ----------------------------------------------------------------------------- headline ATE
+
+
+def _written_run(out, seq, T_wc, frames, system="nislam"):
+    """Write a run folder for the poses ``T_wc`` of sequence frames ``frames`` (no SLAM involved)."""
+    from torchslam.slam.base import RunResult, SystemOutput
+    from torchslam.slam.outputs import write_run
+
+    idx = torch.as_tensor(frames, dtype=torch.int64)
+    o = SystemOutput(
+        frame_indices=idx, timestamps=seq.timestamps[idx].to(torch.float64), T_wc=T_wc,
+        keyframe_indices=idx[:1], keyframe_T_wc=T_wc[:1],
+    )
+    result = RunResult(o, len(seq), len(idx), 0, [], 1.0, 1.0, False)
+    return write_run(out, system, result, seq)
+
+
+@pytest.mark.parametrize("name", ["tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs"])
+def test_headline_ate_is_evo_ape_on_the_files(shared_data, tmp_path, name):
+    """``ate_rmse_m`` equals ``evo_ape tum groundtruth.txt trajectory.txt -a`` to 1e-9 m."""
+    sync = pytest.importorskip("evo.core.sync")
+    from evo.core import metrics as evo_metrics
+    from evo.tools import file_interface
+
+    from torchslam.data.tum import TUMSequence
+    from torchslam.geometry import se3_exp
+
+    seq = TUMSequence(shared_data / name, prefetch=0)
+    g = torch.Generator().manual_seed(3)
+    frames = torch.nonzero(torch.isin(seq.timestamps, seq.groundtruth.timestamps)).flatten()[::3]
+    T_gt = seq.groundtruth.T_wc[torch.searchsorted(seq.groundtruth.timestamps, seq.timestamps[frames])]
+    drift = se3_exp(torch.cumsum(torch.randn(len(frames), 6, generator=g, dtype=torch.float64) * 0.003, 0))
+    T_est = se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.3], dtype=torch.float64)) @ drift @ T_gt
+    m = _written_run(tmp_path, seq, T_est, frames)
+    assert json.loads((tmp_path / "metrics.json").read_text())["ate_rmse_m"] == m["ate_rmse_m"]
+    ref = file_interface.read_tum_trajectory_file(str(shared_data / name / "groundtruth.txt"))
+    est = file_interface.read_tum_trajectory_file(str(tmp_path / "trajectory.txt"))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    est.align(ref, correct_scale=False)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    evo_rmse = float(ape.get_statistic(evo_metrics.StatisticsType.rmse))
+    assert abs(m["ate_rmse_m"] - evo_rmse) <= 1e-9, (m["ate_rmse_m"], evo_rmse)
+    assert m["matched"] == est.num_poses
+    assert m["ate_association"] == "nearest" and m["ate_association_max_dt_s"] == 0.01
+    assert m["ate_groundtruth"] == "groundtruth.txt"
+    # The ATE against the ground truth interpolated at the frame stamps is kept apart.
+    assert m["ate_rmse_interpolated_m"] is not None and m["ate_rmse_interpolated_m"] > 0
+
+
+def test_synthetic_headline_uses_the_exact_ground_truth(tmp_path):
+    from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+
+    seq = generate_sequence(SyntheticConfig(frames=8, width=64, height=48, trajectory="translate"))
+    T = seq.groundtruth.T_wc.clone()
+    T[:, 0, 3] += 0.01 * torch.arange(8, dtype=torch.float64)  # planted error, known ATE
+    m = _written_run(tmp_path, seq, T, range(8))
+    assert m["ate_association"] == "exact" and m["ate_association_max_dt_s"] == 0.0
+    assert m["ate_groundtruth"] == "sequence" and m["matched"] == 8
+    assert "ate_rmse_interpolated_m" not in m
+    from torchslam.data import Trajectory
+    from torchslam.eval import ate
+
+    expect = ate(Trajectory(seq.timestamps, T), seq.groundtruth).stats["rmse"]
+    assert m["ate_rmse_m"] == pytest.approx(expect, abs=1e-15) and m["ate_rmse_m"] > 1e-3

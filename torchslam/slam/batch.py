@@ -523,9 +523,12 @@ def _finish_sequence(
 ) -> dict[str, Any]:
     """Write the run folder of one finished sequence (ground truth first, metrics.json last)."""
     extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames}
-    if sequence.groundtruth is not None and len(sequence.groundtruth):
+    # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
+    # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
+    groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
+    if groundtruth is not None and len(groundtruth):
         folder.mkdir(parents=True, exist_ok=True)
-        write_tum_trajectory(folder / GROUNDTRUTH_FILE, sequence.groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
+        write_tum_trajectory(folder / GROUNDTRUTH_FILE, groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
         extra["groundtruth_file"] = GROUNDTRUTH_FILE
     metrics = write_run(folder, system, result, sequence, config=config, extra=extra)
     log_hparams(monitor, config, metrics)

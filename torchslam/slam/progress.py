@@ -28,6 +28,7 @@ logger = logging.getLogger(__name__)
 
 
 def _ate_so_far(system: Any, groundtruth: Trajectory) -> float | None:
+    """The headline's ATE (SE(3), evo's association) of the system's current estimate."""
     from ..eval import ate
 
     estimate = system.estimate_so_far()
@@ -46,7 +47,9 @@ def progress_callback(system: Any, sequence: Sequence, monitor: Monitor, every: 
     sequences with ground truth), ``timing/<stage>_ms`` (running mean per processed frame of the
     system's ``stage_ms``), ``progress/<counter>`` (the system's ``progress_counters()``).
     """
-    groundtruth = sequence.groundtruth
+    # The raw ground truth, as for the headline: the live estimate is at the depth instants,
+    # which the ground truth interpolated at the colour stamps does not hold.
+    groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
 
     def on_frame(n: int) -> None:
         if every <= 0 or n % every:
