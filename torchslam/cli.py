@@ -64,16 +64,33 @@ def _cmd_run(args) -> int:
             return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False)
 
     metrics = run(options, config_path=args.config, overrides=args.overrides, progress=progress)
-    ate_m = metrics.get("ate_rmse_m")
-    ate_txt = f"{ate_m * 100:.2f} cm" if ate_m is not None else "n/a (no ground truth)"
-    status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
-    print(
-        f"{args.system} on {metrics['sequence']}{status}: {metrics['tracked_frames']}/{metrics['frames']} frames tracked, "
-        f"{metrics['keyframes']} keyframes, ATE RMSE {ate_txt}, "
-        f"{metrics['fps_end_to_end']:.1f} frames/s end-to-end ({metrics['fps_compute']:.1f} compute-only)"
-    )
+    print(_run_line(args.system, metrics))
     print(f"run folder: {out}")
-    return 0
+    # A run with ground truth whose ATE could not be computed (e.g. non-finite values) failed
+    # its evaluation: exit 1, as batch marks such a row "failed".
+    return 1 if metrics.get("ate_error") else 0
+
+
+def _run_line(system: str, metrics: dict) -> str:
+    """One line: frames tracked (and on the motion prior), keyframes, the headline ATE, frames/s."""
+    ate_m = metrics.get("ate_rmse_m")
+    if ate_m is not None:
+        ate_txt = f"{ate_m * 100:.2f} cm"
+    elif metrics.get("ate_error"):
+        ate_txt = f"evaluation failed ({metrics['ate_error']})"
+    elif metrics.get("groundtruth"):
+        ate_txt = f"n/a ({metrics.get('eval_note', 'not computed')})"
+    else:
+        ate_txt = "n/a (no ground truth)"
+    status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
+    prior = metrics.get("prior_frames") or 0
+    prior_txt = f", {prior} on motion prior" if prior else ""
+    fps, fps_c = metrics.get("fps_end_to_end"), metrics.get("fps_compute")
+    fps_txt = "n/a frames/s" if fps is None or fps_c is None else f"{fps:.1f} frames/s end-to-end ({fps_c:.1f} compute-only)"
+    return (
+        f"{system} on {metrics['sequence']}{status}: {metrics['tracked_frames']}/{metrics['frames']} frames tracked"
+        f"{prior_txt}, {metrics['keyframes']} keyframes, ATE RMSE {ate_txt}, {fps_txt}"
+    )
 
 
 def _add_batch(sub) -> None:

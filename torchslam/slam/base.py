@@ -38,6 +38,10 @@ class SystemOutput:
         map_colors: optional (P, 3) float32 colours in [0, 1].
         stage_ms: total milliseconds spent in each named stage.
         metrics: system-specific figures (loops, PSR statistics, attitude source, ...).
+        prior_indices: (M,) int64 sequence indices of the frames among ``frame_indices`` whose
+            pose is a motion prior, not an estimate from their own data (GC-SLAM's lost frames
+            holding the last pose and unlinked keyframes started there, NI-SLAM's frames on the
+            constant-velocity prediction); None = none.
     """
 
     frame_indices: Tensor
@@ -49,6 +53,7 @@ class SystemOutput:
     map_colors: Tensor | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
+    prior_indices: Tensor | None = None
 
 
 class SlamSystem(Protocol):

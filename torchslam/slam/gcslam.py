@@ -449,6 +449,9 @@ class GCSlam:
         self.frame_geom_time: list[float] = []
         self.frame_kf: list[int] = []
         self.frame_T_kf: list[Tensor] = []
+        # Per recorded frame: "lost" (holds the last pose), "unlinked" (an unlinked keyframe
+        # started at the last pose: a motion prior until a loop closure links it) or None.
+        self.frame_prior: list[str | None] = []
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0}
         self.inliers: list[int] = []
@@ -553,13 +556,15 @@ class GCSlam:
         self.lost_in_row += 1
         if not self.frame_index:
             return  # nothing to hold yet: the frame has no pose
+        self.frame_prior.append("lost")
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(self.frame_kf[-1])
         self.frame_T_kf.append(self.frame_T_kf[-1])
 
-    def _record(self, frame: Frame, kf: int, T_kf: Tensor) -> None:
+    def _record(self, frame: Frame, kf: int, T_kf: Tensor, prior: str | None = None) -> None:
+        self.frame_prior.append(prior)
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
@@ -603,7 +608,7 @@ class GCSlam:
         if not self._worker.threaded:
             # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
             self._inline_s += time.perf_counter() - t_submit
-        self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device))
+        self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device), prior="unlinked" if anchor is not None else None)
         self.monitor.scalar("tracking/keyframes", kid + 1, len(self.frame_index))
 
     # ------------------------------------------------------------------ monitoring
@@ -664,7 +669,15 @@ class GCSlam:
             map_colors=colors,
             stage_ms=stage_ms,
             metrics=self._metrics(),
+            prior_indices=self._prior_indices(),
         )
+
+    def _prior_indices(self) -> Tensor:
+        """Sequence indices of the frames on a motion prior: lost ones, and unlinked keyframes no pair links."""
+        linked = {k for pair in self.optimizer.pairs for k in pair}
+        rows = [f for f, why, kf in zip(self.frame_index, self.frame_prior, self.frame_kf)
+                if why == "lost" or (why == "unlinked" and kf not in linked)]
+        return torch.tensor(rows, dtype=torch.int64)
 
     def _at_frame_times(self, T_geom: Tensor) -> Tensor:
         """Re-sample the poses from the depth instants to the frames' (colour) timestamps.

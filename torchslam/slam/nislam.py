@@ -393,6 +393,7 @@ class NISlam:
         self.frame_geom_time: list[float] = []
         self.frame_kf: list[int] = []
         self.frame_T_kf: list[Tensor] = []
+        self.frame_prior: list[bool] = []  # the frame's position is the constant-velocity prediction
         self.edges_i: list[int] = []
         self.edges_j: list[int] = []
         self.edges_T: list[Tensor] = []
@@ -515,6 +516,7 @@ class NISlam:
         psr = float(res.psr[0])
         self.psr.append(psr)
         self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
+        on_prior = False
         if self._lost(res, T_wi, work.p_pred):
             if self._jump(T_wi, work.p_pred) or (cfg.lost_uses_prior and work.p_pred is not None):
                 # The frame matches neither its keyframe nor the fresh one made from the last
@@ -522,6 +524,7 @@ class NISlam:
                 # not to be trusted, so its position is the constant-velocity prediction.
                 T_wi = se3_from_Rt(work.R_wi, work.p_pred)
                 self.motion_prior_frames += 1
+                on_prior = True
             # Nothing better to match against: the frame starts a keyframe of its own.
             self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb,
                                previous=kf, variance=res.variance[0], track=res)
@@ -538,7 +541,7 @@ class NISlam:
                 self._toc("fusion", t0)
             self._last = {"frame": work.frame, "T_wi": T_wi, "R_att": work.R_att[0], "points": work.points,
                           "grey": work.grey, "valid": work.valid, "rgb": work.rgb, "variance": res.variance[0]}
-        self._record(work.frame, T_wi)
+        self._record(work.frame, T_wi, prior=on_prior)
 
     def _jump(self, T_wi: Tensor, p_pred: Tensor | None) -> bool:
         return p_pred is not None and float((T_wi[:3, 3] - p_pred).norm()) > self.cfg.max_jump_m
@@ -567,8 +570,9 @@ class NISlam:
         self.frame_T_kf[-1] = torch.eye(4, dtype=torch.float64)
         self._last = None
 
-    def _record(self, frame: Frame, T_wi: Tensor) -> None:
+    def _record(self, frame: Frame, T_wi: Tensor, prior: bool = False) -> None:
         kf = self.keyframes[-1]
+        self.frame_prior.append(prior)
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
@@ -737,6 +741,7 @@ class NISlam:
             map_colors=colors,
             stage_ms=dict(self.stage_ms),
             metrics=self._metrics(),
+            prior_indices=torch.tensor([f for f, p in zip(self.frame_index, self.frame_prior) if p], dtype=torch.int64),
         )
 
     def _at_frame_times(self, T_geom: Tensor) -> Tensor:

@@ -3,9 +3,16 @@
 Every system writes the same files and the same ``metrics.json`` keys, so runs of different
 systems compare directly:
 
-``system, sequence, frames, processed_frames, tracked_frames, skipped_frames, keyframes,
-fps_end_to_end, fps_compute, wall_s, compute_s, stage_ms, stage_ms_total, interrupted,
-ate_rmse_m`` (``null`` without ground truth) and, with ground truth, the ATE/RPE statistics.
+``system, sequence, frames, processed_frames, tracked_frames, prior_frames, posed_frames,
+skipped_frames, keyframes, fps_end_to_end, fps_compute, wall_s, compute_s, stage_ms,
+stage_ms_total, interrupted, ate_rmse_m`` (``null`` without ground truth or when the evaluation
+failed, with ``ate_error`` saying why) and, with ground truth, the ATE/RPE statistics.
+
+``tracked_frames`` counts the frames with a pose estimated from their own data;
+``prior_frames`` those whose pose is a motion prior (``SystemOutput.prior_indices``);
+``posed_frames`` = both = the poses in ``trajectory.txt``. ``metrics.json`` is strict JSON
+(:mod:`torchslam.strictjson`): a non-finite value is written as ``null`` and listed under
+``non_finite``.
 """
 
 from __future__ import annotations
@@ -39,6 +46,8 @@ METRIC_KEYS = (
     "frames",
     "processed_frames",
     "tracked_frames",
+    "prior_frames",
+    "posed_frames",
     "skipped_frames",
     "keyframes",
     "fps_end_to_end",
@@ -226,12 +235,16 @@ def write_run(
     if config is not None:
         (out / "config.yaml").write_text(yaml.safe_dump(dict(config), sort_keys=False))
     n = max(result.frames_processed, 1)
+    n_prior = 0 if o.prior_indices is None else len(o.prior_indices)
     metrics: dict[str, Any] = {
         "system": system,
         "sequence": sequence.name,
         "frames": result.frames_total,
         "processed_frames": result.frames_processed,
-        "tracked_frames": len(o.frame_indices),
+        # A pose from the frame's own data; frames that took a motion prior are counted apart.
+        "tracked_frames": len(o.frame_indices) - n_prior,
+        "prior_frames": n_prior,
+        "posed_frames": len(o.frame_indices),
         "skipped_frames": result.frames_skipped,
         "skipped": [{"index": int(i), "reason": r} for i, r in result.skipped],
         "keyframes": len(o.keyframe_indices),
