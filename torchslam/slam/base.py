@@ -28,6 +28,11 @@ logger = logging.getLogger(__name__)
 class SystemOutput:
     """Everything a system estimated over one sequence.
 
+    Convention:
+        Every pose and map point is in one world frame, the same for both systems: the camera
+        frame of the first keyframe at its depth instant (x right, y down, z forward, metres),
+        so ``keyframe_T_wc[0]`` is the identity, and ``map_points`` line up with ``T_wc``.
+
     Attributes:
         frame_indices: (N,) int64 indices (into the sequence) of the frames that have a pose.
         timestamps: (N,) float64 seconds of those frames.

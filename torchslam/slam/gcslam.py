@@ -27,6 +27,11 @@ success makes the frame a keyframe linked to the one it matched. Otherwise the f
 pose of the last tracked frame and is counted as lost; after ``max_lost`` lost frames in a row,
 the next frame with enough depth starts a new keyframe with no link, which FastGO gauges on its
 own until a loop closure reconnects it.
+
+Convention:
+    The world is the first keyframe's camera frame (FastGO holds keyframe 0 fixed at the
+    identity); trajectory, keyframes and ``map.ply`` (the keyframes' coloured depth points in
+    their optimised poses) are all in it.
 """
 
 from __future__ import annotations

@@ -289,6 +289,8 @@ class _Keyframe:
     points: Tensor | None  # (1, N, 3) cloud for loop verification (dropped after use)
     grey: Tensor | None
     valid: Tensor | None
+    colour: Tensor | None = None  # (3, H, W) uint8 orthographic colour image at creation, on the CPU (map.ply)
+    colour_valid: Tensor | None = None  # (H, W) bool, the pixels ``colour`` holds
 
 
 @dataclass
@@ -594,6 +596,14 @@ class NISlam:
         r = choose_resolution(points, valid, size, k.coverage, k.sample_step)
         ortho = orthographic_project(points, grey, valid, None, r, size)
         kf = _Keyframe(frame.index, frame.timestamp, T_wi, R_att, r, keyframe_map(ortho), None, points, grey, valid)
+        # The keyframe's colour in the same orthographic pixels (same points, same z-buffer
+        # winners), for the colours of map.ply; the tracking itself works on grey.
+        n = points.shape[1]
+        colour = orthographic_project(
+            points.expand(3, n, 3), rgb[0].reshape(3, n).to(points.dtype), valid.expand(3, n), None, r.expand(3), size
+        )
+        kf.colour = (colour.grey.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
+        kf.colour_valid = colour.valid[0].cpu()
         if previous is not None:
             # The previous keyframe's filter (possibly a row of a batch, ``track_frames``) is no
             # longer needed for tracking.
@@ -700,11 +710,22 @@ class NISlam:
         self.monitor.scalar("map/loops", self.loops["accepted"], len(self.frame_index))
 
     # ------------------------------------------------------------------ output
+    def _output_keyframe_poses(self) -> Tensor:
+        """(K, 4, 4) keyframe poses in the output world: the first keyframe's camera frame.
+
+        Internally the world is the attitude stream's (gravity-aligned, at the first camera's
+        position); trajectory.txt, keyframes.txt and map.ply share GC-SLAM's convention instead:
+        the world is the camera frame of the first keyframe (x right, y down, z forward). The
+        pose graph holds keyframe 0 fixed, so that frame does not move.
+        """
+        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        return se3_inverse(T_wk[0]) @ T_wk
+
     def estimate_so_far(self) -> Trajectory | None:
-        """Every frame tracked so far in the current keyframe poses, at the depth instants."""
+        """Every frame tracked so far in the current keyframe poses, at the depth instants (output world)."""
         if not self.frame_index:
             return None
-        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        T_wk = self._output_keyframe_poses()
         T = frame_poses(T_wk, self.frame_kf, self.frame_T_kf)
         return Trajectory(torch.tensor(self.frame_geom_time, dtype=torch.float64), T)
 
@@ -728,7 +749,7 @@ class NISlam:
             out.stage_ms = dict(self.stage_ms)
             out.metrics = self._metrics()
             return out
-        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        T_wk = self._output_keyframe_poses()
         T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
         points, colors = self._map_points(T_wk)
         return SystemOutput(
@@ -776,7 +797,7 @@ class NISlam:
         }
 
     def _map_points(self, T_wk: Tensor) -> tuple[Tensor, Tensor]:
-        """Back-project every keyframe's fused orthographic map into the world, voxel-downsampled."""
+        """Back-project every keyframe's fused orthographic map into the world, voxel-downsampled, in colour."""
         k = self.cfg.kcc
         H, W = k.ortho_height, k.ortho_width
         rows, cols = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
@@ -787,9 +808,45 @@ class NISlam:
             # Orthographic pixel centres in the keyframe's own camera frame (rotation = identity).
             xyz = torch.stack([(cols[m] + 0.5 - W / 2) * r, (rows[m] + 0.5 - H / 2) * r, kf.map.depth[0].cpu()[m].double()], -1)
             pts.append(xyz @ T[:3, :3].T + T[:3, 3])
-            cols_out.append(kf.map.grey[0].cpu()[m].double())
-        grey = torch.cat(cols_out)
-        return voxel_downsample(torch.cat(pts), grey[:, None].expand(-1, 3), self.cfg.map_voxel)
+            # The keyframe's colour where it saw the pixel; pixels only later frames filled in
+            # (fusion) carry their fused grey.
+            grey = kf.map.grey[0].cpu()[m].double()[:, None].expand(-1, 3)
+            if kf.colour is not None:
+                colour, has = _fill_colour(kf.colour.double() / 255, kf.colour_valid, m)
+                grey = torch.where(has[m][:, None], colour.permute(1, 2, 0)[m], grey)  # (P, 3)
+            cols_out.append(grey)
+        return voxel_downsample(torch.cat(pts), torch.cat(cols_out), self.cfg.map_voxel)
+
+
+def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) -> tuple[Tensor, Tensor]:
+    """Spread a keyframe's orthographic colours into the map pixels only its holes-filled map holds.
+
+    The orthographic map is finer than a small image's points (and fusion fills more pixels), so
+    each round gives every wanted pixel without a colour the mean of its coloured 3x3 neighbours.
+
+    Args:
+        colour: (3, H, W) float64 colours in [0, 1], valid where ``has``.
+        has: (H, W) bool pixels holding a colour.
+        want: (H, W) bool pixels of the map.
+        rounds: most rounds (pixels farther than this from any colour keep none).
+
+    Returns:
+        (colour (3, H, W), has (H, W)) after filling.
+    """
+    import torch.nn.functional as F
+
+    colour, has = colour.clone(), has.clone()
+    for _ in range(rounds):
+        todo = want & ~has
+        if not bool(todo.any()):
+            break
+        w = has.to(colour.dtype)[None, None]
+        total = F.avg_pool2d((colour * w[0])[None], 3, stride=1, padding=1)[0]
+        count = F.avg_pool2d(w, 3, stride=1, padding=1)[0, 0]
+        new = todo & (count > 0)
+        colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
+        has = has | new
+    return colour, has
 
 
 # ---------------------------------------------------------------------- many sequences in lockstep
