@@ -168,7 +168,8 @@ class NISlamConfig:
             ``depth_statistic``, "median" here (``depth_translation``).
         loop: loop closure settings.
         map_voxel: voxel size of ``map.ply``, metres.
-        monitor_images_every: log the correlation response and keyframe image every n keyframes.
+        monitor_images_every: log the orthographic image of every n-th keyframe and the
+            correlation response of the first frame matched against it (TensorBoard).
     """
 
     attitude: str = "auto"
@@ -412,6 +413,8 @@ class NISlam:
         self._last: dict[str, Any] | None = None
         self.motion_prior_frames = 0
         self._history_start = 0
+        self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
+        self._response_keyframe: int | None = None  # keyframe whose first match's response is to be logged
 
     def _tic(self) -> float:
         return time.perf_counter()
@@ -439,6 +442,7 @@ class NISlam:
         Returns None when the attitude stream has a gap at the frame (counted, not tracked).
         """
         cfg = self.cfg
+        self.last_frame_index = frame.index
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
         times = torch.tensor([frame.geometry_time, frame.timestamp], dtype=torch.float64)
         R_att, ok = self.attitude.at(times + cfg.attitude_time_offset, cfg.attitude_max_gap)
@@ -517,7 +521,14 @@ class NISlam:
         kf = self.keyframes[-1]
         psr = float(res.psr[0])
         self.psr.append(psr)
-        self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
+        step = work.frame.index
+        self.monitor.scalar("tracking/psr", psr, step)
+        if self._response_keyframe == len(self.keyframes) - 1:
+            # The correlation response of the first frame matched against an imaged keyframe,
+            # zero shift at the centre.
+            g = torch.fft.fftshift(res.response[0].detach().float(), dim=(-2, -1))
+            self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], step)
+            self._response_keyframe = None
         on_prior = False
         if self._lost(res, T_wi, work.p_pred):
             if self._jump(T_wi, work.p_pred) or (cfg.lost_uses_prior and work.p_pred is not None):
@@ -529,7 +540,7 @@ class NISlam:
                 on_prior = True
             # Nothing better to match against: the frame starts a keyframe of its own.
             self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb,
-                               previous=kf, variance=res.variance[0], track=res)
+                               previous=kf, variance=res.variance[0])
             self._last = None
         else:
             if psr > cfg.kcc.T_M:
@@ -588,7 +599,7 @@ class NISlam:
             kf.filter = kcc_train(z, k.sigma, k.lam)
         return kf.filter
 
-    def _new_keyframe(self, frame, T_wi, R_att, points, grey, valid, rgb, previous=None, variance=None, track=None) -> None:
+    def _new_keyframe(self, frame, T_wi, R_att, points, grey, valid, rgb, previous=None, variance=None) -> None:
         cfg = self.cfg
         t0 = self._tic()
         k = cfg.kcc
@@ -614,12 +625,10 @@ class NISlam:
         if previous is not None:
             self._add_edge(kid - 1, kid, se3_inverse(previous.T_wk) @ T_wi, variance, loop=False)
         t0 = self._toc("keyframe", t0)
-        self.monitor.scalar("map/keyframes", len(self.keyframes), len(self.frame_index))
+        self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
         if cfg.monitor_images_every and kid % cfg.monitor_images_every == 0:
-            self.monitor.image("keyframe/ortho_grey", ortho.grey[0][None], kid)
-            if track is not None:
-                g = track.response[0]
-                self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], kid)
+            self.monitor.image("keyframe/ortho_grey", ortho.grey[0][None], frame.index)
+            self._response_keyframe = kid
         if cfg.loop.enabled:
             self._loop_closure(kid, rgb)
             self._toc("loop", t0)
@@ -692,6 +701,7 @@ class NISlam:
         odo = ~torch.tensor(self.edges_loop)
         bend = edge_residuals(res.T_wc, i[odo], j[odo], T_ij[odo])[:, :3].norm(dim=-1).max()
         self.posegraph_ms.append(1000 * (time.perf_counter() - t0))
+        self.monitor.scalar("optimization/posegraph_ms", self.posegraph_ms[-1], self.keyframes[k_new].frame_index)
         self._toc("posegraph", t0)
         if float(bend) > self.cfg.loop.max_odometry_bend_m or not bool(torch.isfinite(res.T_wc).all()):
             for lst in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop):
@@ -707,7 +717,7 @@ class NISlam:
         # the stream's, and the same correction applies to the frames that follow.
         newest = self.keyframes[-1]
         self.R_corr = newest.T_wk[:3, :3] @ newest.R_att.T
-        self.monitor.scalar("map/loops", self.loops["accepted"], len(self.frame_index))
+        self.monitor.scalar("progress/loops_accepted", self.loops["accepted"], self.keyframes[-1].frame_index)
 
     # ------------------------------------------------------------------ output
     def _output_keyframe_poses(self) -> Tensor:
@@ -736,6 +746,7 @@ class NISlam:
             "loops_accepted": float(self.loops["accepted"]),
             "loops_rejected": float(self.loops["rejected_by_odometry"]),
             "fused_frames": float(self.fused),
+            "prior_frames": float(self.motion_prior_frames),
         }
         if self.psr and math.isfinite(self.psr[-1]):
             out["psr"] = float(self.psr[-1])

@@ -162,7 +162,7 @@ def run(
         on_frame = progress_callback(system, sequence, monitor, every=options.monitor_every) if options.tensorboard else None
         result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames, on_frame=on_frame)
         if options.tensorboard:
-            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
+            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}")
         resolved["device"] = options.device
         extra = {"device": options.device, "data": options.data}
         if options.params is not None:
