@@ -251,3 +251,25 @@ def test_a_bare_torchslam_with_top_level_options_runs_the_default_job(monkeypatc
     monkeypatch.setitem(cli.COMMANDS, "run", lambda args: seen.append(args) or 0)
     assert main(["-v"]) == 0 and main([]) == 0
     assert [(a.command, a.verbose, a.system, a.max_frames) for a in seen] == [("run", 1, "nislam", None), ("run", 0, "nislam", None)]
+
+
+def test_eval_help_states_every_default(capsys):
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for default in ("default se3", "default 0.01, evo's --t_max_diff and the headline's", "nearest: evo's",
+                    "(default, the headline's)", "(default 0)", "RPE step (default 1)", "(default frames)", "(default: table)"):
+        assert default in text, default
+
+
+def test_eval_by_default_reproduces_the_run_headline(shared_data, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--data", str(shared_data / "tum_fr1_xyz"), "--max-frames", "15", "--out", str(out),
+                 "--no-progress", "--no-tensorboard"]) == 0
+    capsys.readouterr()
+    m = json.loads((out / "metrics.json").read_text())
+    gt = shared_data / "tum_fr1_xyz" / "groundtruth.txt"
+    assert main(["eval", "--est", str(out / "trajectory.txt"), "--gt", str(gt), "--json"]) == 0
+    ours = json.loads(capsys.readouterr().out)
+    assert ours["ate_rmse_m"] == m["ate_rmse_m"] and ours["matched"] == m["matched"] == 15
+    assert ours["ate_association"] == "nearest" and ours["ate_association_max_dt_s"] == 0.01

@@ -8,7 +8,6 @@ exit with status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -16,6 +15,7 @@ from pathlib import Path
 from typing import Sequence as Seq
 
 from .errors import TorchSlamError
+from .strictjson import dumps as strict_dumps
 
 logger = logging.getLogger("torchslam")
 
@@ -91,16 +91,35 @@ def _cmd_run(args) -> int:
     except OutputWriteError as exc:  # the run was computed; what could be written is kept
         print(f"torchslam run: error: {exc}", file=sys.stderr)
         return 1
-    ate_m = metrics.get("ate_rmse_m")
-    ate_txt = f"{ate_m * 100:.2f} cm" if ate_m is not None else "n/a (no ground truth)"
-    status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
-    print(
-        f"{args.system} on {metrics['sequence']}{status}: {metrics['tracked_frames']}/{metrics['frames']} frames tracked, "
-        f"{metrics['keyframes']} keyframes, ATE RMSE {ate_txt}, "
-        f"{metrics['fps_end_to_end']:.1f} frames/s end-to-end ({metrics['fps_compute']:.1f} compute-only)"
-    )
+    print(_run_line(args.system, metrics))
     print(f"run folder: {out}")
-    return 130 if metrics.get("interrupted") else 0
+    if metrics.get("interrupted"):
+        return 130
+    # A run with ground truth whose ATE could not be computed (e.g. non-finite values) failed
+    # its evaluation: exit 1, as batch marks such a row "failed".
+    return 1 if metrics.get("ate_error") else 0
+
+
+def _run_line(system: str, metrics: dict) -> str:
+    """One line: frames tracked (and on the motion prior), keyframes, the headline ATE, frames/s."""
+    ate_m = metrics.get("ate_rmse_m")
+    if ate_m is not None:
+        ate_txt = f"{ate_m * 100:.2f} cm"
+    elif metrics.get("ate_error"):
+        ate_txt = f"evaluation failed ({metrics['ate_error']})"
+    elif metrics.get("groundtruth"):
+        ate_txt = f"n/a ({metrics.get('eval_note', 'not computed')})"
+    else:
+        ate_txt = "n/a (no ground truth)"
+    status = " (interrupted: partial results)" if metrics.get("interrupted") else ""
+    prior = metrics.get("prior_frames") or 0
+    prior_txt = f", {prior} on motion prior" if prior else ""
+    fps, fps_c = metrics.get("fps_end_to_end"), metrics.get("fps_compute")
+    fps_txt = "n/a frames/s" if fps is None or fps_c is None else f"{fps:.1f} frames/s end-to-end ({fps_c:.1f} compute-only)"
+    return (
+        f"{system} on {metrics['sequence']}{status}: {metrics['tracked_frames']}/{metrics['frames']} frames tracked"
+        f"{prior_txt}, {metrics['keyframes']} keyframes, ATE RMSE {ate_txt}, {fps_txt}"
+    )
 
 
 def _add_batch(sub) -> None:
@@ -177,14 +196,26 @@ def _cmd_report(args) -> int:
 
 
 def _add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)")
+    p = sub.add_parser(
+        "eval", help="ATE/RPE of an estimated trajectory against ground truth (TUM format)",
+        description="With the defaults the figures are evo's (evo_ape/evo_rpe tum GT EST -a, delta 1 frame) and "
+        "the ATE equals the ate_rmse_m that 'torchslam run' writes to metrics.json for a sequence's raw "
+        "groundtruth.txt.",
+    )
     p.add_argument("--est", required=True, help="estimated trajectory, TUM format")
     p.add_argument("--gt", required=True, help="ground-truth trajectory, TUM format")
-    p.add_argument("--align", default="se3", choices=["se3", "sim3", "none"], help="alignment before ATE (default se3)")
-    p.add_argument("--max-dt", type=float, default=0.02, help="largest timestamp gap when matching poses, seconds")
+    p.add_argument("--align", default="se3", choices=["se3", "sim3", "none"],
+                   help="alignment before ATE and RPE (default se3, as evo's -a; sim3 as -as)")
+    p.add_argument("--max-dt", type=float, default=0.01,
+                   help="largest timestamp gap when matching poses, seconds (default 0.01, evo's --t_max_diff "
+                   "and the headline's)")
+    p.add_argument("--association", default="nearest", choices=["nearest", "unique"],
+                   help="nearest: evo's nearest-timestamp rule (default, the headline's); unique: the TUM "
+                   "benchmark's one-to-one rule")
+    p.add_argument("--offset", type=float, default=0.0, help="seconds added to the estimate's stamps before matching (default 0)")
     p.add_argument("--delta", type=float, default=1, help="RPE step (default 1)")
-    p.add_argument("--delta-unit", default="frames", choices=["frames", "seconds"], help="unit of --delta")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--delta-unit", default="frames", choices=["frames", "seconds"], help="unit of --delta (default frames)")
+    p.add_argument("--json", action="store_true", help="print strict JSON instead of a table (default: table)")
 
 
 def _cmd_eval(args) -> int:
@@ -196,10 +227,11 @@ def _cmd_eval(args) -> int:
     delta = int(args.delta) if args.delta_unit == "frames" else args.delta
     if args.delta_unit == "frames" and delta != args.delta:
         raise _ArgError(f"--delta {args.delta}: a step in frames must be a whole number")
-    a = ate(est, gt, align=args.align, max_dt=args.max_dt)
-    r = rpe(est, gt, delta=delta, unit=args.delta_unit, align=args.align, max_dt=args.max_dt)
+    match = {"max_dt": args.max_dt, "offset": args.offset, "association": args.association}
+    a = ate(est, gt, align=args.align, **match)
+    r = rpe(est, gt, delta=delta, unit=args.delta_unit, align=args.align, **match)
     if args.json:
-        print(json.dumps(metrics_dict(a, r), indent=2))
+        print(strict_dumps(metrics_dict(a, r)))
     else:
         print(format_report(a, r))
     return 0
@@ -216,7 +248,7 @@ def _cmd_info(args) -> int:
 
     info = sequence_info(args.dir)
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(strict_dumps(info))
         return 0
     width = max(len(k) for k in info)
     for k, v in info.items():
@@ -290,7 +322,7 @@ def _cmd_calibrate_time(args) -> int:
         max_pairs=args.pairs,
     )
     if args.json:
-        print(json.dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}, indent=2))
+        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}))
         return 0
     print(f"sequence          {seq.name}")
     print(f"attitude source   {stream.source}")

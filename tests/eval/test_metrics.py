@@ -291,12 +291,12 @@ def test_shifted_timestamps():
         ate(late, gt, max_dt=0.004)
 
 
-def test_association_is_one_to_one():
+def test_unique_association_is_one_to_one():
     # Two estimated stamps 4 ms and 6 ms after each ground-truth stamp: only the nearer matches.
     gt = _random_traj(20, seed=5)
     stamps = torch.stack([gt.timestamps + 0.004, gt.timestamps + 0.006], 1).reshape(-1)
     est = Trajectory(stamps, gt.T_wc.repeat_interleave(2, 0))
-    ie, ig = associate_trajectories(est, gt)
+    ie, ig = associate_trajectories(est, gt, max_dt=0.02, association="unique")
     assert ie.tolist() == list(range(0, 40, 2)) and ig.tolist() == list(range(20))
 
 
@@ -439,3 +439,78 @@ def test_degenerate_cases_raise():
     still = Trajectory(gt.timestamps, gt.T_wc[:1].expand(10, 4, 4).clone())
     with pytest.raises(EvaluationError, match="sim3.*do not move"):
         ate(still, gt, align="sim3")
+
+
+# ----------------------------------------------------------------------------- evo's association
+
+
+def _evo_ape_files(gt_path, est_path, max_diff: float = 0.01, offset: float = 0.0) -> tuple[float, int]:
+    """``evo_ape tum gt est -a --t_max_diff max_diff --t_offset offset``: (rmse, matched poses)."""
+    ref = file_interface.read_tum_trajectory_file(str(gt_path))
+    est = file_interface.read_tum_trajectory_file(str(est_path))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff, offset_2=offset)
+    est.align(ref, correct_scale=False)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    return float(ape.get_statistic(evo_metrics.StatisticsType.rmse)), est.num_poses
+
+
+def _stamps_like_a_camera(gt: Trajectory, seed: int, step: int) -> torch.Tensor:
+    """Every ``step``-th ground-truth stamp jittered by up to +-12 ms: some fall outside 10 ms."""
+    g = torch.Generator().manual_seed(seed)
+    t = gt.timestamps[::step]
+    return t + (torch.rand(t.shape, generator=g, dtype=F64) - 0.5) * 0.024
+
+
+@pytest.mark.parametrize("name", SEQUENCES)
+def test_default_association_and_ate_are_evos_to_1e9(shared_data, tmp_path, name):
+    gt_path = shared_data / name / "groundtruth.txt"
+    gt = read_tum_trajectory(gt_path)
+    base = _perturb(gt, "drift", seed=_seed(name, "drift", salt=7))
+    cases = {
+        "sparser": (_stamps_like_a_camera(gt, 1, 3), 0.0),
+        # Denser than the ground truth: evo then starts from the ground truth's stamps.
+        "denser": (torch.sort(torch.cat([gt.timestamps + 0.003, gt.timestamps[::2] - 0.004])).values, 0.0),
+        "offset": (_stamps_like_a_camera(gt, 2, 2) + 0.05, -0.05),
+    }
+    for case, (stamps, offset) in cases.items():
+        stamps = torch.unique(stamps)
+        T, ok = base.interpolate(stamps)
+        est = Trajectory.from_tum_array(Trajectory(stamps[ok], T[ok]).to_tum_array())
+        path = tmp_path / f"{case}.txt"
+        from torchslam.data import write_tum_trajectory
+
+        write_tum_trajectory(path, est)
+        est = read_tum_trajectory(path)
+        ours = ate(est, gt, align="se3", offset=offset)
+        rmse, matched = _evo_ape_files(gt_path, path, offset=offset)
+        assert ours.matched == matched, case
+        assert abs(ours.stats["rmse"] - rmse) <= 1e-9, f"{name}/{case}: {ours.stats['rmse']!r} vs evo {rmse!r}"
+        assert ours.association == "nearest" and ours.max_dt == 0.01
+        # The indices themselves are evo's.
+        short_first = len(est) <= len(gt)
+        if short_first:
+            ie_evo, ig_evo = sync.matching_time_indices(est.timestamps.numpy(), gt.timestamps.numpy(), 0.01, -offset)
+        else:
+            ig_evo, ie_evo = sync.matching_time_indices(gt.timestamps.numpy(), est.timestamps.numpy(), 0.01, offset)
+        ie, ig = associate_trajectories(est, gt, offset=offset)
+        assert ie.tolist() == list(ie_evo) and ig.tolist() == list(ig_evo), case
+
+
+def test_nearest_may_reuse_a_pose_where_unique_does_not():
+    gt = _random_traj(20, seed=8)
+    # Two estimated stamps 3 ms either side of each ground-truth stamp (the estimate is longer).
+    stamps = torch.stack([gt.timestamps - 0.003, gt.timestamps + 0.003], 1).reshape(-1)
+    est = Trajectory(stamps, gt.T_wc.repeat_interleave(2, 0))
+    ie, ig = associate_trajectories(est, gt)  # evo: from the 20 ground-truth stamps, ties to the earlier
+    e_idx, g_idx = sync.matching_time_indices(gt.timestamps.numpy(), est.timestamps.numpy(), 0.01)
+    assert ig.tolist() == list(e_idx) == list(range(20)) and ie.tolist() == list(g_idx)
+    # Fewer estimated poses than ground truth, two of them nearest to one ground-truth pose.
+    short = Trajectory(gt.timestamps[[3, 3]] + torch.tensor([-0.004, 0.004], dtype=F64), gt.T_wc[[3, 3]])
+    short = Trajectory(torch.cat([short.timestamps, gt.timestamps[10:12] + 0.001]), torch.cat([short.T_wc, gt.T_wc[10:12]]))
+    ie, ig = associate_trajectories(short, gt)
+    assert ig.tolist() == [3, 3, 10, 11]
+    ie, ig = associate_trajectories(short, gt, association="unique")
+    assert ig.tolist() == [3, 10, 11] and len(set(ig.tolist())) == len(ig)
+    with pytest.raises(ConfigError, match="association: unknown option 'closest'.*'nearest', 'unique'"):
+        ate(short, gt, association="closest")

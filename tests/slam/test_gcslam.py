@@ -175,6 +175,37 @@ def test_frames_without_depth_and_unrelated_frames_do_not_crash():
     assert len(out.T_wc) == len(frames)
 
 
+def test_lost_frames_are_counted_apart_from_tracked_ones(tmp_path):
+    from torchslam.cli import _run_line
+    from torchslam.slam.outputs import write_run
+
+    from ._sequences import EditedSequence
+
+    base = generate_sequence(SyntheticConfig(frames=20, trajectory="translate", seed=4, **SMALL))
+    g = torch.Generator().manual_seed(0)
+    noise = {i: torch.rand(base[i].rgb.shape, generator=g) for i in (8, 9, 10)}
+
+    def plant(f):  # unrelated content: nothing to register or relocalise against
+        return dataclasses.replace(f, rgb=noise[f.index]) if f.index in noise else f
+
+    edited = EditedSequence(base, plant)
+    result = run_sequence(GCSlam(GCSlamConfig(threaded=False)), edited)
+    out = result.output
+    t = out.metrics["tracking"]
+    assert t["lost_frames"] == 3 and t["unlinked_keyframes"] == 0
+    assert out.prior_indices.tolist() == [8, 9, 10]
+    m = write_run(tmp_path, "gcslam", result, edited)
+    assert (m["tracked_frames"], m["prior_frames"], m["posed_frames"]) == (17, 3, 20)
+    assert "17/20 frames tracked, 3 on motion prior," in _run_line("gcslam", m)
+    # Lost long enough to start an unlinked keyframe at the last pose: a prior too, while unlinked.
+    many = {i: torch.rand(base[i].rgb.shape, generator=g) for i in range(8, 14)}
+    edited = EditedSequence(base, lambda f: dataclasses.replace(f, rgb=many[f.index]) if f.index in many else f)
+    out = run_sequence(GCSlam(GCSlamConfig(threaded=False, max_lost=2, loops=False)), edited).output
+    t = out.metrics["tracking"]
+    assert t["unlinked_keyframes"] >= 1
+    assert len(out.prior_indices) == t["lost_frames"] + t["unlinked_keyframes"]
+
+
 def test_bad_config_values_name_the_key():
     with pytest.raises(ConfigError, match="frontend"):
         GCSlamConfig(frontend="icp")

@@ -13,7 +13,7 @@ from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError
 from torchslam.eval import ate
 from torchslam.slam import run_sequence
-from torchslam.slam.nislam import NISlam, NISlamConfig
+from torchslam.slam.nislam import LoopConfig, NISlam, NISlamConfig
 
 from ..conftest import REPO_ROOT
 from ._sequences import EditedSequence
@@ -148,3 +148,24 @@ def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
     # Tracking runs along the rays: the first frame's keyframe points follow them.
     on.track(seq[0])
     assert len(on.keyframes) == 1
+
+
+def test_frames_on_the_motion_prior_are_not_counted_as_tracked(tmp_path):
+    from torchslam.slam.outputs import write_run
+
+    seq = generate_sequence(SyntheticConfig(frames=16, trajectory="translate", **SMALL))
+    other = generate_sequence(SyntheticConfig(frames=1, trajectory="orbit", seed=7, **SMALL))[0]
+
+    def swap(f: Frame) -> Frame:
+        return dataclasses.replace(f, rgb=other.rgb, depth=other.depth) if f.index == 10 else f
+
+    edited = EditedSequence(seq, swap)
+    result = run_sequence(NISlam(NISlamConfig(loop=LoopConfig(enabled=False))), edited)
+    out = result.output
+    # Frame 10 and frame 11 (which meets the keyframe made of frame 10) take the prediction.
+    assert out.prior_indices.tolist() == [10, 11] and out.metrics["motion_prior_frames"] == 2
+    m = write_run(tmp_path, "nislam", result, edited)
+    assert (m["tracked_frames"], m["prior_frames"], m["posed_frames"]) == (14, 2, 16)
+    from torchslam.cli import _run_line
+
+    assert "14/16 frames tracked, 2 on motion prior," in _run_line("nislam", m)

@@ -1,5 +1,8 @@
-"""Run-folder outputs: the voxel grid of map.ply."""
+"""Run-folder outputs: the voxel grid of map.ply, the headline ATE, strict JSON."""
 
+import json
+
+import pytest
 import torch
 
 from torchslam.slam.outputs import voxel_downsample
@@ -32,3 +35,119 @@ def test_voxel_downsample_equals_rowwise_unique_reference():
     wide = torch.tensor([[0.0, 0.0, 0.0], [1e7, 1e7, 1e7], [1e7, 1e7, 1e7]], dtype=torch.float64)
     P, _ = voxel_downsample(wide, torch.zeros(3, 3), 1e-4)
     assert P.shape == (2, 3)
+
+
+# ----------------------------------------------------------------------------- headline ATE
+
+
+def _written_run(out, seq, T_wc, frames, system="nislam"):
+    """Write a run folder for the poses ``T_wc`` of sequence frames ``frames`` (no SLAM involved)."""
+    from torchslam.slam.base import RunResult, SystemOutput
+    from torchslam.slam.outputs import write_run
+
+    idx = torch.as_tensor(frames, dtype=torch.int64)
+    o = SystemOutput(
+        frame_indices=idx, timestamps=seq.timestamps[idx].to(torch.float64), T_wc=T_wc,
+        keyframe_indices=idx[:1], keyframe_T_wc=T_wc[:1],
+    )
+    result = RunResult(o, len(seq), len(idx), 0, [], 1.0, 1.0, False)
+    return write_run(out, system, result, seq)
+
+
+@pytest.mark.parametrize("name", ["tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs"])
+def test_headline_ate_is_evo_ape_on_the_files(shared_data, tmp_path, name):
+    """``ate_rmse_m`` equals ``evo_ape tum groundtruth.txt trajectory.txt -a`` to 1e-9 m."""
+    sync = pytest.importorskip("evo.core.sync")
+    from evo.core import metrics as evo_metrics
+    from evo.tools import file_interface
+
+    from torchslam.data.tum import TUMSequence
+    from torchslam.geometry import se3_exp
+
+    seq = TUMSequence(shared_data / name, prefetch=0)
+    g = torch.Generator().manual_seed(3)
+    frames = torch.nonzero(torch.isin(seq.timestamps, seq.groundtruth.timestamps)).flatten()[::3]
+    T_gt = seq.groundtruth.T_wc[torch.searchsorted(seq.groundtruth.timestamps, seq.timestamps[frames])]
+    drift = se3_exp(torch.cumsum(torch.randn(len(frames), 6, generator=g, dtype=torch.float64) * 0.003, 0))
+    T_est = se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.3], dtype=torch.float64)) @ drift @ T_gt
+    m = _written_run(tmp_path, seq, T_est, frames)
+    assert json.loads((tmp_path / "metrics.json").read_text())["ate_rmse_m"] == m["ate_rmse_m"]
+    ref = file_interface.read_tum_trajectory_file(str(shared_data / name / "groundtruth.txt"))
+    est = file_interface.read_tum_trajectory_file(str(tmp_path / "trajectory.txt"))
+    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    est.align(ref, correct_scale=False)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    evo_rmse = float(ape.get_statistic(evo_metrics.StatisticsType.rmse))
+    assert abs(m["ate_rmse_m"] - evo_rmse) <= 1e-9, (m["ate_rmse_m"], evo_rmse)
+    assert m["matched"] == est.num_poses
+    assert m["ate_association"] == "nearest" and m["ate_association_max_dt_s"] == 0.01
+    assert m["ate_groundtruth"] == "groundtruth.txt"
+    # The ATE against the ground truth interpolated at the frame stamps is kept apart.
+    assert m["ate_rmse_interpolated_m"] is not None and m["ate_rmse_interpolated_m"] > 0
+
+
+def test_synthetic_headline_uses_the_exact_ground_truth(tmp_path):
+    from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+
+    seq = generate_sequence(SyntheticConfig(frames=8, width=64, height=48, trajectory="translate"))
+    T = seq.groundtruth.T_wc.clone()
+    T[:, 0, 3] += 0.01 * torch.arange(8, dtype=torch.float64)  # planted error, known ATE
+    m = _written_run(tmp_path, seq, T, range(8))
+    assert m["ate_association"] == "exact" and m["ate_association_max_dt_s"] == 0.0
+    assert m["ate_groundtruth"] == "sequence" and m["matched"] == 8
+    assert "ate_rmse_interpolated_m" not in m
+    from torchslam.data import Trajectory
+    from torchslam.eval import ate
+
+    expect = ate(Trajectory(seq.timestamps, T), seq.groundtruth).stats["rmse"]
+    assert m["ate_rmse_m"] == pytest.approx(expect, abs=1e-15) and m["ate_rmse_m"] > 1e-3
+
+
+# ----------------------------------------------------------------------------- map.ply
+
+
+def _read_ply(path):
+    import numpy as np
+
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    rec = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    xyz = torch.from_numpy(np.stack([rec["x"], rec["y"], rec["z"]], 1).astype("float64"))
+    rgb = torch.from_numpy(np.stack([rec["r"], rec["g"], rec["b"]], 1).astype("int64"))
+    return xyz, rgb
+
+
+@pytest.mark.parametrize("system", ["nislam", "gcslam"])
+def test_map_is_in_colour_and_in_the_trajectory_world_frame(tmp_path, system):
+    """The first frame's depth points, posed by trajectory.txt's first pose, lie on map.ply."""
+    from torchslam.data import read_tum_trajectory
+    from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+    from torchslam.geometry import backproject_depth
+    from torchslam.slam import run_sequence
+    from torchslam.slam.gcslam import GCSlam, GCSlamConfig
+    from torchslam.slam.nislam import NISlam, NISlamConfig
+    from torchslam.slam.outputs import write_run
+
+    seq = generate_sequence(SyntheticConfig(frames=12, width=160, height=120, trajectory="translate", depth_noise=False))
+    build = NISlam(NISlamConfig(attitude="groundtruth")) if system == "nislam" else GCSlam(GCSlamConfig(threaded=False, map_stride=1))
+    write_run(tmp_path, system, run_sequence(build, seq), seq)
+    traj = read_tum_trajectory(tmp_path / "trajectory.txt")
+    kfs = read_tum_trajectory(tmp_path / "keyframes.txt")
+    # One stated world for both systems: the first keyframe's camera frame.
+    torch.testing.assert_close(kfs.T_wc[0], torch.eye(4, dtype=torch.float64), atol=1e-8, rtol=0)
+    map_xyz, map_rgb = _read_ply(tmp_path / "map.ply")
+    f0 = seq[0]
+    pts, valid = backproject_depth(f0.depth[None].double(), seq.camera.as_tensor(torch.float64)[None])
+    pts = pts[0][valid[0]][::7]
+    T0 = traj.T_wc[0]
+    world = pts @ T0[:3, :3].T + T0[:3, 3]
+    near = torch.cdist(world, map_xyz).min(dim=1).values
+    assert float(near.median()) < 0.01, float(near.median())
+    # The gravity-aligned frame NI-SLAM tracks in is not the output frame: there they miss.
+    R_wc0 = seq.groundtruth.T_wc[0, :3, :3]
+    off = torch.cdist(pts @ R_wc0.T, map_xyz).min(dim=1).values
+    assert float(off.median()) > 0.05
+    # Colour, not grey: the synthetic scene's texture is coloured.
+    chroma = (map_rgb.max(dim=1).values - map_rgb.min(dim=1).values).float()
+    assert float((chroma > 10).float().mean()) > 0.5

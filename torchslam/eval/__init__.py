@@ -3,7 +3,9 @@
 from .metrics import (
     AlignMode,
     ATEResult,
+    Association,
     DeltaUnit,
+    EVO_MAX_DT,
     EvaluationError,
     RPEResult,
     associate_trajectories,
@@ -17,7 +19,9 @@ from .report import format_report, metrics_dict
 __all__ = [
     "AlignMode",
     "ATEResult",
+    "Association",
     "DeltaUnit",
+    "EVO_MAX_DT",
     "EvaluationError",
     "RPEResult",
     "associate_trajectories",

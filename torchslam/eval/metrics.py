@@ -3,7 +3,7 @@
 Both metrics follow the definitions of the TUM RGB-D benchmark (Sturm et al., IROS 2012):
 
 * ATE, Sturm Eq. (1)-(2): after associating the estimated and ground-truth poses by timestamp
-  and aligning the estimate onto the ground truth (Umeyama, rigid by default), the error of
+  (by default evo's rule: nearest stamp within 0.01 s, :class:`Association`) and aligning the estimate onto the ground truth (Umeyama, rigid by default), the error of
   pose i is the distance between the aligned estimated camera centre and the true one,
   ``e_i = || s R p_est_i + t - p_gt_i ||`` in metres.
 * RPE, Sturm Eq. (3)-(4): for a pair (i, j) of matched poses the relative error is
@@ -41,6 +41,8 @@ from ..geometry import se3_inverse, so3_angle, umeyama_alignment
 __all__ = [
     "AlignMode",
     "ATEResult",
+    "Association",
+    "EVO_MAX_DT",
     "DeltaUnit",
     "EvaluationError",
     "RPEResult",
@@ -54,6 +56,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max", "sse")
+
+EVO_MAX_DT = 0.01
+"""evo's default association tolerance (``evo_ape --t_max_diff``), seconds: the default here."""
 
 
 class EvaluationError(TorchSlamError, ValueError):
@@ -69,6 +74,18 @@ class AlignMode(str, Enum):
     """Similarity alignment (rotation, translation and one scale), for scale-free estimates."""
     NONE = "none"
     """No alignment: both trajectories are taken to share one world frame."""
+
+
+class Association(str, Enum):
+    """How estimated and ground-truth poses are paired by timestamp."""
+
+    NEAREST = "nearest"
+    """evo's ``nearest_time`` rule (``evo.core.sync.associate_trajectories``): every pose of the
+    trajectory with fewer poses takes the nearest-in-time pose of the other within ``max_dt``;
+    a pose of the longer one may serve twice."""
+    UNIQUE = "unique"
+    """The TUM benchmark's ``associate.py`` rule: candidate pairs within ``max_dt`` in order of
+    increasing gap, each pose used at most once (:func:`torchslam.data.frame.associate_timestamps`)."""
 
 
 class DeltaUnit(str, Enum):
@@ -137,24 +154,29 @@ def error_statistics(errors: Tensor) -> dict[str, float]:
 
 
 def associate_trajectories(
-    est: Trajectory, gt: Trajectory, max_dt: float = 0.02, offset: float = 0.0
+    est: Trajectory,
+    gt: Trajectory,
+    max_dt: float = EVO_MAX_DT,
+    offset: float = 0.0,
+    association: Association | str = Association.NEAREST,
 ) -> tuple[Tensor, Tensor]:
-    """Pair estimated and ground-truth poses by timestamp, one-to-one, closest pairs first.
+    """Pair estimated and ground-truth poses by timestamp.
 
     ``offset`` is added to the estimate's timestamps before matching (``t_est + offset`` is
-    compared with ``t_gt``), for an estimator whose clock is shifted. Matching uses
-    :func:`torchslam.data.frame.associate_timestamps`, the TUM benchmark rule in which no pose
-    is used twice.
+    compared with ``t_gt``), for an estimator whose clock is shifted. The default is evo's
+    association (``"nearest"``, ``max_dt`` 0.01 s), so ATE and RPE equal ``evo_ape`` /
+    ``evo_rpe`` on the same files; ``"unique"`` is the TUM benchmark's one-to-one rule.
 
     Args:
         est: estimated trajectory.
         gt: ground-truth trajectory.
         max_dt: largest accepted timestamp gap, seconds.
         offset: time added to the estimate's stamps, seconds.
+        association: ``"nearest"`` (evo) or ``"unique"`` (TUM), or an :class:`Association`.
 
     Returns:
         est_index, gt_index: (K,) int64 indices (on the CPU) of matched poses, in increasing
-        time order.
+        time order (``"nearest"`` may repeat an index of the trajectory with more poses).
 
     Raises:
         EvaluationError: when no pair matches; the message gives both stamp counts and spans
@@ -166,12 +188,51 @@ def associate_trajectories(
     offset = _check_seconds(offset, "offset")
     if max_dt < 0:
         raise ConfigError(f"max_dt: must be >= 0 seconds, got {max_dt}")
+    rule = _parse_option(Association, association, "association")
     t_est = est.timestamps.detach().cpu() + offset
     t_gt = gt.timestamps.detach().cpu()
-    est_index, gt_index = associate_timestamps(t_est, t_gt, max_gap=max_dt)
+    if rule is Association.NEAREST:
+        est_index, gt_index = _associate_nearest(est.timestamps.detach().cpu(), t_gt, max_dt, offset)
+    else:
+        est_index, gt_index = associate_timestamps(t_est, t_gt, max_gap=max_dt)
     if est_index.numel() == 0:
         raise EvaluationError(_no_match_message(t_est, t_gt, max_dt, offset))
     logger.debug("associated %d of %d estimated and %d ground-truth poses", est_index.numel(), len(est), len(gt))
+    return est_index, gt_index
+
+
+def _nearest_indices(t1: Tensor, t2: Tensor, max_dt: float) -> tuple[Tensor, Tensor]:
+    """evo's ``matching_time_indices`` for sorted ``t2``: for each ``t1`` stamp its nearest ``t2``.
+
+    The same float64 operations in the same order as evo 1.38 (insertion index ``side="right"``
+    clamped to the last stamp; the later neighbour wins only when strictly nearer; stamps
+    farther than ``max_dt`` outside ``t2``'s span are skipped), so every pair is evo's.
+    """
+    if t1.numel() == 0 or t2.numel() == 0:
+        empty = torch.zeros(0, dtype=torch.int64)
+        return empty, empty.clone()
+    inside = (t1 >= t2[0] - max_dt) & (t1 <= t2[-1] + max_dt)
+    hi = torch.searchsorted(t2, t1, right=True).clamp(max=t2.numel() - 1)
+    diff_ub = t2[hi] - t1
+    diff_lb = torch.where(hi > 0, t1 - t2[(hi - 1).clamp(min=0)], torch.full_like(t1, math.inf))
+    take_ub = (diff_ub <= max_dt) & (diff_ub < diff_lb)
+    take_lb = ~take_ub & (diff_lb <= max_dt) & (diff_lb <= diff_ub)
+    keep = inside & (take_ub | take_lb)
+    best = torch.where(take_ub, hi, hi - 1)
+    return torch.nonzero(keep).flatten(), best[keep]
+
+
+def _associate_nearest(t_est: Tensor, t_gt: Tensor, max_dt: float, offset: float) -> tuple[Tensor, Tensor]:
+    """evo's ``associate_trajectories(gt, est, max_diff, offset_2=offset)`` as index pairs.
+
+    evo starts from the trajectory with fewer poses (the estimate when both have as many) and
+    adds the offset to the other one's stamps with the sign that keeps ``t_est + offset``
+    against ``t_gt``.
+    """
+    if t_est.numel() > t_gt.numel():
+        gt_index, est_index = _nearest_indices(t_gt, t_est + offset, max_dt)
+    else:
+        est_index, gt_index = _nearest_indices(t_est, t_gt + (-offset), max_dt)
     return est_index, gt_index
 
 
@@ -193,9 +254,9 @@ def _no_match_message(t_est: Tensor, t_gt: Tensor, max_dt: float, offset: float)
 
 
 def _matched_poses(
-    est: Trajectory, gt: Trajectory, max_dt: float, offset: float
+    est: Trajectory, gt: Trajectory, max_dt: float, offset: float, association: Association | str
 ) -> tuple[Tensor, Tensor, Tensor]:
-    est_index, gt_index = associate_trajectories(est, gt, max_dt, offset)
+    est_index, gt_index = associate_trajectories(est, gt, max_dt, offset, association)
     device = est.T_wc.device
     T_est = est.T_wc.detach().to(torch.float64)[est_index.to(device)]
     T_gt = gt.T_wc.detach().to(device=device, dtype=torch.float64)[gt_index.to(device)]
@@ -240,6 +301,8 @@ class ATEResult:
             ``"none"``).
         scale: the alignment's scale (1.0 unless ``align == "sim3"``).
         matched: number K of associated pose pairs.
+        association: the association rule (``"nearest"`` or ``"unique"``).
+        max_dt: the association tolerance, seconds.
     """
 
     stats: dict[str, float]
@@ -249,12 +312,16 @@ class ATEResult:
     T_align: Tensor
     scale: float
     matched: int
+    association: str = Association.NEAREST.value
+    max_dt: float = EVO_MAX_DT
 
     def to_dict(self, with_errors: bool = False) -> dict[str, Any]:
         """Return a JSON-ready dict (statistics in metres; per-pose errors only if asked)."""
         out: dict[str, Any] = {
             "metric": "ate",
             "align": self.align,
+            "association": self.association,
+            "max_dt_s": self.max_dt,
             "matched": self.matched,
             "scale": self.scale,
             "T_align": self.T_align.tolist(),
@@ -320,8 +387,9 @@ def ate(
     est: Trajectory,
     gt: Trajectory,
     align: AlignMode | str = AlignMode.SE3,
-    max_dt: float = 0.02,
+    max_dt: float = EVO_MAX_DT,
     offset: float = 0.0,
+    association: Association | str = Association.NEAREST,
 ) -> ATEResult:
     """Compute the absolute trajectory error (Sturm et al. 2012, Eq. (1)-(2)).
 
@@ -334,19 +402,23 @@ def ate(
         est: estimated trajectory (camera-to-world).
         gt: ground-truth trajectory (camera-to-world).
         align: ``"se3"`` (default), ``"sim3"`` or ``"none"``, or an :class:`AlignMode`.
-        max_dt: largest timestamp gap accepted when associating, seconds.
+        max_dt: largest timestamp gap accepted when associating, seconds (evo's 0.01 s).
         offset: time added to the estimate's stamps before associating, seconds.
+        association: ``"nearest"`` (evo's rule, default) or ``"unique"``
+            (:func:`associate_trajectories`).
 
     Returns:
-        The :class:`ATEResult`, errors in metres.
+        The :class:`ATEResult`, errors in metres. With the defaults it is what
+        ``evo_ape tum gt est -a`` (``"se3"``) or ``-as`` (``"sim3"``) reports.
 
     Raises:
-        ConfigError: unknown ``align`` (the message lists the valid modes) or bad ``max_dt``.
+        ConfigError: unknown ``align`` or ``association`` (the message lists the valid ones) or
+            bad ``max_dt``.
         ShapeError: an argument is not a well-formed Trajectory.
         EvaluationError: no common timestamps, or too few poses for the alignment.
     """
     mode = _parse_option(AlignMode, align, "align")
-    T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset)
+    T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset, association)
     p_est, p_gt = T_est[:, :3, 3], T_gt[:, :3, 3]
     T_align, scale = _alignment(p_est, p_gt, mode)
     p_aligned = scale * (p_est @ T_align[:3, :3].T) + T_align[:3, 3]
@@ -359,6 +431,8 @@ def ate(
         T_align=T_align,
         scale=float(scale),
         matched=int(errors.shape[0]),
+        association=_parse_option(Association, association, "association").value,
+        max_dt=float(max_dt),
     )
 
 
@@ -433,9 +507,10 @@ def rpe(
     delta: float = 1,
     unit: DeltaUnit | str = DeltaUnit.FRAMES,
     align: AlignMode | str = AlignMode.NONE,
-    max_dt: float = 0.02,
+    max_dt: float = EVO_MAX_DT,
     all_pairs: bool = False,
     offset: float = 0.0,
+    association: Association | str = Association.NEAREST,
 ) -> RPEResult:
     """Compute the relative pose error (Sturm et al. 2012, Eq. (3)-(4)).
 
@@ -458,6 +533,7 @@ def rpe(
         max_dt: largest timestamp gap accepted when associating, seconds.
         all_pairs: one pair per starting pose instead of a chain of non-overlapping pairs.
         offset: time added to the estimate's stamps before associating, seconds.
+        association: ``"nearest"`` (evo's rule, default) or ``"unique"``.
 
     Returns:
         The :class:`RPEResult`.
@@ -469,7 +545,7 @@ def rpe(
     """
     mode = _parse_option(AlignMode, align, "align")
     unit = _parse_option(DeltaUnit, unit, "unit")
-    T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset)
+    T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset, association)
     pairs = rpe_pairs(stamps, delta, unit, all_pairs)
     k = T_est.shape[0]
     if pairs.shape[0] == 0:

@@ -32,7 +32,8 @@ def format_report(ate_result: ATEResult, rpe_result: RPEResult | None = None) ->
     """
     _check_results(ate_result, rpe_result)
     lines = [
-        f"ATE alignment: {ate_result.align} (scale {ate_result.scale:.6f}), {ate_result.matched} matched poses",
+        f"ATE alignment: {ate_result.align} (scale {ate_result.scale:.6f}), {ate_result.matched} matched poses "
+        f"(association {ate_result.association}, max dt {ate_result.max_dt:g} s)",
     ]
     if rpe_result is not None:
         pairing = "all pairs" if rpe_result.all_pairs else "consecutive pairs"
@@ -58,7 +59,8 @@ def metrics_dict(ate_result: ATEResult, rpe_result: RPEResult | None = None) -> 
     """Flatten the results into a JSON-ready dict with unit-suffixed keys.
 
     Keys: ``ate_{rmse,mean,median,std,min,max}_m``, ``ate_sse_m2``, ``ate_scale``, ``align``
-    (the ATE alignment) and ``matched``; with an RPE result also
+    (the ATE alignment), ``matched``, ``ate_association`` (the rule) and
+    ``ate_association_max_dt_s`` (its tolerance, seconds); with an RPE result also
     ``rpe_trans_{stat}_m``, ``rpe_trans_sse_m2``, ``rpe_rot_{stat}_deg``, ``rpe_rot_sse_deg2``,
     ``rpe_align``, ``rpe_scale``, ``rpe_delta``, ``rpe_unit``, ``rpe_all_pairs``, ``rpe_pairs``
     and ``rpe_matched``.
@@ -77,6 +79,8 @@ def metrics_dict(ate_result: ATEResult, rpe_result: RPEResult | None = None) -> 
     out["ate_scale"] = ate_result.scale
     out["align"] = ate_result.align
     out["matched"] = ate_result.matched
+    out["ate_association"] = ate_result.association
+    out["ate_association_max_dt_s"] = ate_result.max_dt
     if rpe_result is not None:
         for k in STAT_KEYS:
             out["rpe_trans_sse_m2" if k == "sse" else f"rpe_trans_{k}_m"] = rpe_result.trans_stats[k]

@@ -32,6 +32,11 @@ logger = logging.getLogger(__name__)
 class SystemOutput:
     """Everything a system estimated over one sequence.
 
+    Convention:
+        Every pose and map point is in one world frame, the same for both systems: the camera
+        frame of the first keyframe at its depth instant (x right, y down, z forward, metres),
+        so ``keyframe_T_wc[0]`` is the identity, and ``map_points`` line up with ``T_wc``.
+
     Attributes:
         frame_indices: (N,) int64 indices (into the sequence) of the frames that have a pose.
         timestamps: (N,) float64 seconds of those frames.
@@ -42,6 +47,10 @@ class SystemOutput:
         map_colors: optional (P, 3) float32 colours in [0, 1].
         stage_ms: total milliseconds spent in each named stage.
         metrics: system-specific figures (loops, PSR statistics, attitude source, ...).
+        prior_indices: (M,) int64 sequence indices of the frames among ``frame_indices`` whose
+            pose is a motion prior, not an estimate from their own data (GC-SLAM's lost frames
+            holding the last pose and unlinked keyframes started there, NI-SLAM's frames on the
+            constant-velocity prediction); None = none.
     """
 
     frame_indices: Tensor
@@ -53,6 +62,7 @@ class SystemOutput:
     map_colors: Tensor | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
+    prior_indices: Tensor | None = None
 
 
 class SlamSystem(Protocol):

@@ -66,6 +66,7 @@ from ..data.synthetic import SYNTHETIC_TRAJECTORIES, SyntheticConfig, generate_s
 from ..data.trajectory import read_tum_trajectory, write_tum_trajectory
 from ..environment import environment_info
 from ..errors import ConfigError, TorchSlamError
+from ..strictjson import dumps as strict_dumps
 from .base import RunResult, check_max_frames, run_sequence
 from .lockstep import run_lockstep
 from .monitor import Monitor, TensorBoardMonitor
@@ -291,11 +292,18 @@ def summary_row(source: BatchSource, status: str, metrics: Mapping[str, Any] | N
 
     Args:
         source: the sequence.
-        status: one of ``ok``, ``resumed``, ``failed``, ``interrupted``, ``not run``.
+        status: one of ``ok``, ``resumed``, ``failed``, ``interrupted``, ``not run``. An ``ok``
+            or ``resumed`` run whose metrics hold an ``ate_error`` (ground truth present, no ATE
+            computable) becomes ``failed`` with the message ``evaluation failed: ...``.
         metrics: the run's ``metrics.json`` content, or None.
         message: why it failed, or a note.
     """
     m = metrics or {}
+    if m.get("ate_error") and status in ("ok", "resumed"):
+        # The run is complete but has no accuracy figure although there is ground truth
+        # (e.g. non-finite values): that is a failure, not a plain "ok".
+        status = "failed"
+        message = f"evaluation failed: {m['ate_error']}" + (f"; {message}" if message else "")
     return {
         "name": source.name,
         "status": status,
@@ -458,9 +466,10 @@ def completed_run(
     """Return the metrics of ``folder`` if it holds a complete run of this request, else None.
 
     Complete means: ``metrics.json`` parses to a mapping of ``system`` with ``processed_frames``
-    and without ``"interrupted": true``, and ``trajectory.txt`` parses with ``tracked_frames``
-    poses. The same request means, where given: the same data ``spec``, the same resolved
-    ``config`` (``config.yaml``; the device may differ) and the same ``max_frames``.
+    and without ``"interrupted": true``, and ``trajectory.txt`` parses with ``posed_frames``
+    (older runs: ``tracked_frames``) poses. The same request means, where given: the same data
+    ``spec``, the same resolved ``config`` (``config.yaml``; the device may differ) and the same
+    ``max_frames``.
     """
     metrics, why, _ = _run_state(Path(folder), system, spec, config, max_frames)
     if why is not None:
@@ -499,8 +508,10 @@ def _run_state(
         return None, "the run was interrupted", False
     try:
         traj = read_tum_trajectory(folder / "trajectory.txt")
-        if metrics.get("tracked_frames") is not None and len(traj) != metrics["tracked_frames"]:
-            why = f"trajectory.txt has {len(traj)} poses, metrics.json says {metrics['tracked_frames']}"
+        # posed_frames = tracked + on a motion prior; runs written before it have only tracked_frames.
+        key = "posed_frames" if metrics.get("posed_frames") is not None else "tracked_frames"
+        if metrics.get(key) is not None and len(traj) != metrics[key]:
+            why = f"trajectory.txt has {len(traj)} poses, metrics.json says {key} {metrics[key]}"
     except TorchSlamError as exc:
         why = f"trajectory.txt: {exc}"
     if why is not None:
@@ -559,9 +570,12 @@ def _finish_sequence(
 ) -> dict[str, Any]:
     """Write the run folder of one finished sequence (ground truth first, metrics.json last)."""
     extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames}
-    if sequence.groundtruth is not None and len(sequence.groundtruth):
+    # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
+    # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
+    groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
+    if groundtruth is not None and len(groundtruth):
         folder.mkdir(parents=True, exist_ok=True)
-        write_tum_trajectory(folder / GROUNDTRUTH_FILE, sequence.groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
+        write_tum_trajectory(folder / GROUNDTRUTH_FILE, groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
         extra["groundtruth_file"] = GROUNDTRUTH_FILE
     metrics = write_run(folder, system, result, sequence, config=config, extra=extra)
     log_hparams(monitor, config, metrics)
@@ -980,7 +994,7 @@ def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]
     """Write ``summary.json``, ``summary.csv`` (one line per sequence) and ``summary.md``."""
     doc = {**header, "totals": totals, "rows": rows, "environment": environment_info()}
     paths = [out / "summary.json", out / "summary.csv", out / "summary.md"]
-    _write_atomic(paths[0], json.dumps(doc, indent=2) + "\n")
+    _write_atomic(paths[0], strict_dumps(doc) + "\n")
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=SUMMARY_COLUMNS, lineterminator="\n")
     writer.writeheader()

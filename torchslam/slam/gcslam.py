@@ -27,6 +27,11 @@ success makes the frame a keyframe linked to the one it matched. Otherwise the f
 pose of the last tracked frame and is counted as lost; after ``max_lost`` lost frames in a row,
 the next frame with enough depth starts a new keyframe with no link, which FastGO gauges on its
 own until a loop closure reconnects it.
+
+Convention:
+    The world is the first keyframe's camera frame (FastGO holds keyframe 0 fixed at the
+    identity); trajectory, keyframes and ``map.ply`` (the keyframes' coloured depth points in
+    their optimised poses) are all in it.
 """
 
 from __future__ import annotations
@@ -176,6 +181,7 @@ class _KeyframeEvent:
     stats: PairStats | None  # statistics of that registration's correspondences
     features: FrameFeatures  # ORB features of the keyframe (for MILD and loop registration)
     anchor: tuple[int, Tensor] | None = None  # unlinked keyframe: (keyframe, pose relative to it) of the last tracked frame
+    frame_index: int = 0  # the keyframe's sequence frame index (the TensorBoard step)
 
 
 class _Optimizer:
@@ -244,14 +250,14 @@ class _Optimizer:
         self._add_ms("loop_detection", t0)
         return candidates
 
-    def _optimized(self, res, kf: int, ms: float) -> None:
+    def _optimized(self, res, frame_index: int, ms: float) -> None:
         """Take the result of the per-keyframe FastGO run (``ms``: its share of the time)."""
         self.T_wk = list(res.T_wc.unbind(0))
         self.fastgo_ms.append(ms)
         self.stage_ms["fastgo"] = self.stage_ms.get("fastgo", 0.0) + ms
-        self.monitor.scalar("optimization/fastgo_ms", ms, kf)
+        self.monitor.scalar("optimization/fastgo_ms", ms, frame_index)
 
-    def _close_loops(self, kf: int, candidates: list[int]) -> None:
+    def _close_loops(self, kf: int, candidates: list[int], frame_index: int = 0) -> None:
         cfg = self.cfg
         t0 = time.perf_counter()
         self.loops["candidates"] += len(candidates)
@@ -281,6 +287,7 @@ class _Optimizer:
                     self.pair_kind.append("loop")
                 self.stats.append(loop_stats)
                 self.loops["accepted"] += len(group)
+                self.monitor.scalar("progress/loops_accepted", self.loops["accepted"], frame_index)
                 logger.debug("keyframe %d: loop(s) to %s accepted (RMS %.4f -> %.4f m)", kf, [candidates[b] for b in group],
                              rms_before, rms_after)
                 if k == 0:
@@ -336,11 +343,11 @@ def insert_keyframes(optimizers: list[_Optimizer], events: list[_KeyframeEvent])
             continue
         share = 1000.0 * (time.perf_counter() - t0) / len(group)
         for j, k in enumerate(group):
-            optimizers[k]._optimized(res.problem(j), events[k].kf, share)
+            optimizers[k]._optimized(res.problem(j), events[k].frame_index, share)
     for k, (o, ev) in enumerate(zip(optimizers, events)):
         if errors[k] is None and candidates[k]:
             try:
-                o._close_loops(ev.kf, candidates[k])
+                o._close_loops(ev.kf, candidates[k], ev.frame_index)
             except Exception as exc:  # noqa: BLE001
                 errors[k] = exc
     return errors
@@ -449,6 +456,9 @@ class GCSlam:
         self.frame_geom_time: list[float] = []
         self.frame_kf: list[int] = []
         self.frame_T_kf: list[Tensor] = []
+        # Per recorded frame: "lost" (holds the last pose), "unlinked" (an unlinked keyframe
+        # started at the last pose: a motion prior until a loop closure links it) or None.
+        self.frame_prior: list[str | None] = []
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0}
         self.inliers: list[int] = []
@@ -457,6 +467,7 @@ class GCSlam:
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
         self._need_unlinked = False
         self._inline_s = 0.0
+        self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
 
     def _toc(self, stage: str, t0: float) -> float:
         return add_stage_ms(self.stage_ms, stage, t0)
@@ -465,6 +476,7 @@ class GCSlam:
     def track(self, frame: Frame) -> None:
         cfg = self.cfg
         t0 = time.perf_counter()
+        self.last_frame_index = frame.index
         rgb = frame.rgb.to(self.device)
         depth = frame.depth.to(self.device)
         if int((depth > 0).sum()) < cfg.min_valid_depth:
@@ -497,8 +509,7 @@ class GCSlam:
             return
         self.lost_in_row = 0
         self.inliers.append(n)
-        step = len(self.frame_index)
-        self.monitor.scalar("tracking/correspondences", n, step)
+        self.monitor.scalar("tracking/correspondences", n, frame.index)
         moved = self._displacement(kf, T_kf)
         t0 = self._toc("keyframe_decision", t0)
         if moved > cfg.keyframe_displacement * self.camera.fx:
@@ -553,13 +564,15 @@ class GCSlam:
         self.lost_in_row += 1
         if not self.frame_index:
             return  # nothing to hold yet: the frame has no pose
+        self.frame_prior.append("lost")
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
         self.frame_kf.append(self.frame_kf[-1])
         self.frame_T_kf.append(self.frame_T_kf[-1])
 
-    def _record(self, frame: Frame, kf: int, T_kf: Tensor) -> None:
+    def _record(self, frame: Frame, kf: int, T_kf: Tensor, prior: str | None = None) -> None:
+        self.frame_prior.append(prior)
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
@@ -597,14 +610,14 @@ class GCSlam:
             _TrackKeyframe(kid, frame.index, feats, points[sample], pix, dense_frame, points[m].float(), colors)
         )
         ev = _KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
-                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor)
+                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index)
         t_submit = time.perf_counter()
         self._worker.submit(ev)
         if not self._worker.threaded:
             # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
             self._inline_s += time.perf_counter() - t_submit
-        self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device))
-        self.monitor.scalar("tracking/keyframes", kid + 1, len(self.frame_index))
+        self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device), prior="unlinked" if anchor is not None else None)
+        self.monitor.scalar("progress/keyframes", kid + 1, frame.index)
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
@@ -629,6 +642,7 @@ class GCSlam:
             "loops_accepted": float(loops["accepted"]),
             "loops_rejected": float(loops["rejected"]),
             "lost_frames": float(self.counts["lost_frames"]),
+            "prior_frames": float(sum(p is not None for p in self.frame_prior)),
         }
 
     # ------------------------------------------------------------------ output
@@ -664,7 +678,15 @@ class GCSlam:
             map_colors=colors,
             stage_ms=stage_ms,
             metrics=self._metrics(),
+            prior_indices=self._prior_indices(),
         )
+
+    def _prior_indices(self) -> Tensor:
+        """Sequence indices of the frames on a motion prior: lost ones, and unlinked keyframes no pair links."""
+        linked = {k for pair in self.optimizer.pairs for k in pair}
+        rows = [f for f, why, kf in zip(self.frame_index, self.frame_prior, self.frame_kf)
+                if why == "lost" or (why == "unlinked" and kf not in linked)]
+        return torch.tensor(rows, dtype=torch.int64)
 
     def _at_frame_times(self, T_geom: Tensor) -> Tensor:
         """Re-sample the poses from the depth instants to the frames' (colour) timestamps.

@@ -169,7 +169,8 @@ class NISlamConfig:
             ``depth_statistic``, "median" here (``depth_translation``).
         loop: loop closure settings.
         map_voxel: voxel size of ``map.ply``, metres.
-        monitor_images_every: log the correlation response and keyframe image every n keyframes.
+        monitor_images_every: log the orthographic image of every n-th keyframe and the
+            correlation response of the first frame matched against it (TensorBoard).
     """
 
     attitude: str = "auto"
@@ -290,6 +291,8 @@ class _Keyframe:
     points: Tensor | None  # (1, N, 3) cloud for loop verification (dropped after use)
     grey: Tensor | None
     valid: Tensor | None
+    colour: Tensor | None = None  # (3, H, W) uint8 orthographic colour image at creation, on the CPU (map.ply)
+    colour_valid: Tensor | None = None  # (H, W) bool, the pixels ``colour`` holds
 
 
 @dataclass
@@ -395,6 +398,7 @@ class NISlam:
         self.frame_geom_time: list[float] = []
         self.frame_kf: list[int] = []
         self.frame_T_kf: list[Tensor] = []
+        self.frame_prior: list[bool] = []  # the frame's position is the constant-velocity prediction
         self.edges_i: list[int] = []
         self.edges_j: list[int] = []
         self.edges_T: list[Tensor] = []
@@ -411,6 +415,8 @@ class NISlam:
         self._last: dict[str, Any] | None = None
         self.motion_prior_frames = 0
         self._history_start = 0
+        self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
+        self._response_keyframe: int | None = None  # keyframe whose first match's response is to be logged
 
     def _tic(self) -> float:
         return time.perf_counter()
@@ -438,6 +444,7 @@ class NISlam:
         Returns None when the attitude stream has a gap at the frame (counted, not tracked).
         """
         cfg = self.cfg
+        self.last_frame_index = frame.index
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
         times = torch.tensor([frame.geometry_time, frame.timestamp], dtype=torch.float64)
         R_att, ok = self.attitude.at(times + cfg.attitude_time_offset, cfg.attitude_max_gap)
@@ -516,7 +523,15 @@ class NISlam:
         kf = self.keyframes[-1]
         psr = float(res.psr[0])
         self.psr.append(psr)
-        self.monitor.scalar("tracking/psr", psr, len(self.frame_index))
+        step = work.frame.index
+        self.monitor.scalar("tracking/psr", psr, step)
+        if self._response_keyframe == len(self.keyframes) - 1:
+            # The correlation response of the first frame matched against an imaged keyframe,
+            # zero shift at the centre.
+            g = torch.fft.fftshift(res.response[0].detach().float(), dim=(-2, -1))
+            self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], step)
+            self._response_keyframe = None
+        on_prior = False
         if self._lost(res, T_wi, work.p_pred):
             if self._jump(T_wi, work.p_pred) or (cfg.lost_uses_prior and work.p_pred is not None):
                 # The frame matches neither its keyframe nor the fresh one made from the last
@@ -524,9 +539,10 @@ class NISlam:
                 # not to be trusted, so its position is the constant-velocity prediction.
                 T_wi = se3_from_Rt(work.R_wi, work.p_pred)
                 self.motion_prior_frames += 1
+                on_prior = True
             # Nothing better to match against: the frame starts a keyframe of its own.
             self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb,
-                               previous=kf, variance=res.variance[0], track=res)
+                               previous=kf, variance=res.variance[0])
             self._last = None
         else:
             if psr > cfg.kcc.T_M:
@@ -540,7 +556,7 @@ class NISlam:
                 self._toc("fusion", t0)
             self._last = {"frame": work.frame, "T_wi": T_wi, "R_att": work.R_att[0], "points": work.points,
                           "grey": work.grey, "valid": work.valid, "rgb": work.rgb, "variance": res.variance[0]}
-        self._record(work.frame, T_wi)
+        self._record(work.frame, T_wi, prior=on_prior)
 
     def _jump(self, T_wi: Tensor, p_pred: Tensor | None) -> bool:
         return p_pred is not None and float((T_wi[:3, 3] - p_pred).norm()) > self.cfg.max_jump_m
@@ -569,8 +585,9 @@ class NISlam:
         self.frame_T_kf[-1] = torch.eye(4, dtype=torch.float64)
         self._last = None
 
-    def _record(self, frame: Frame, T_wi: Tensor) -> None:
+    def _record(self, frame: Frame, T_wi: Tensor, prior: bool = False) -> None:
         kf = self.keyframes[-1]
+        self.frame_prior.append(prior)
         self.frame_index.append(frame.index)
         self.frame_time.append(frame.timestamp)
         self.frame_geom_time.append(frame.geometry_time)
@@ -584,7 +601,7 @@ class NISlam:
             kf.filter = kcc_train(z, k.sigma, k.lam)
         return kf.filter
 
-    def _new_keyframe(self, frame, T_wi, R_att, points, grey, valid, rgb, previous=None, variance=None, track=None) -> None:
+    def _new_keyframe(self, frame, T_wi, R_att, points, grey, valid, rgb, previous=None, variance=None) -> None:
         cfg = self.cfg
         t0 = self._tic()
         k = cfg.kcc
@@ -592,6 +609,14 @@ class NISlam:
         r = choose_resolution(points, valid, size, k.coverage, k.sample_step)
         ortho = orthographic_project(points, grey, valid, None, r, size)
         kf = _Keyframe(frame.index, frame.timestamp, T_wi, R_att, r, keyframe_map(ortho), None, points, grey, valid)
+        # The keyframe's colour in the same orthographic pixels (same points, same z-buffer
+        # winners), for the colours of map.ply; the tracking itself works on grey.
+        n = points.shape[1]
+        colour = orthographic_project(
+            points.expand(3, n, 3), rgb[0].reshape(3, n).to(points.dtype), valid.expand(3, n), None, r.expand(3), size
+        )
+        kf.colour = (colour.grey.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
+        kf.colour_valid = colour.valid[0].cpu()
         if previous is not None:
             # The previous keyframe's filter (possibly a row of a batch, ``track_frames``) is no
             # longer needed for tracking.
@@ -602,12 +627,10 @@ class NISlam:
         if previous is not None:
             self._add_edge(kid - 1, kid, se3_inverse(previous.T_wk) @ T_wi, variance, loop=False)
         t0 = self._toc("keyframe", t0)
-        self.monitor.scalar("map/keyframes", len(self.keyframes), len(self.frame_index))
+        self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
         if cfg.monitor_images_every and kid % cfg.monitor_images_every == 0:
-            self.monitor.image("keyframe/ortho_grey", ortho.grey[0][None], kid)
-            if track is not None:
-                g = track.response[0]
-                self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], kid)
+            self.monitor.image("keyframe/ortho_grey", ortho.grey[0][None], frame.index)
+            self._response_keyframe = kid
         if cfg.loop.enabled:
             self._loop_closure(kid, rgb)
             self._toc("loop", t0)
@@ -680,6 +703,7 @@ class NISlam:
         odo = ~torch.tensor(self.edges_loop)
         bend = edge_residuals(res.T_wc, i[odo], j[odo], T_ij[odo])[:, :3].norm(dim=-1).max()
         self.posegraph_ms.append(1000 * (time.perf_counter() - t0))
+        self.monitor.scalar("optimization/posegraph_ms", self.posegraph_ms[-1], self.keyframes[k_new].frame_index)
         self._toc("posegraph", t0)
         if float(bend) > self.cfg.loop.max_odometry_bend_m or not bool(torch.isfinite(res.T_wc).all()):
             for lst in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop):
@@ -695,14 +719,25 @@ class NISlam:
         # the stream's, and the same correction applies to the frames that follow.
         newest = self.keyframes[-1]
         self.R_corr = newest.T_wk[:3, :3] @ newest.R_att.T
-        self.monitor.scalar("map/loops", self.loops["accepted"], len(self.frame_index))
+        self.monitor.scalar("progress/loops_accepted", self.loops["accepted"], self.keyframes[-1].frame_index)
 
     # ------------------------------------------------------------------ output
+    def _output_keyframe_poses(self) -> Tensor:
+        """(K, 4, 4) keyframe poses in the output world: the first keyframe's camera frame.
+
+        Internally the world is the attitude stream's (gravity-aligned, at the first camera's
+        position); trajectory.txt, keyframes.txt and map.ply share GC-SLAM's convention instead:
+        the world is the camera frame of the first keyframe (x right, y down, z forward). The
+        pose graph holds keyframe 0 fixed, so that frame does not move.
+        """
+        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        return se3_inverse(T_wk[0]) @ T_wk
+
     def estimate_so_far(self) -> Trajectory | None:
-        """Every frame tracked so far in the current keyframe poses, at the depth instants."""
+        """Every frame tracked so far in the current keyframe poses, at the depth instants (output world)."""
         if not self.frame_index:
             return None
-        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        T_wk = self._output_keyframe_poses()
         T = frame_poses(T_wk, self.frame_kf, self.frame_T_kf)
         return Trajectory(torch.tensor(self.frame_geom_time, dtype=torch.float64), T)
 
@@ -713,6 +748,7 @@ class NISlam:
             "loops_accepted": float(self.loops["accepted"]),
             "loops_rejected": float(self.loops["rejected_by_odometry"]),
             "fused_frames": float(self.fused),
+            "prior_frames": float(self.motion_prior_frames),
         }
         if self.psr and math.isfinite(self.psr[-1]):
             out["psr"] = float(self.psr[-1])
@@ -726,7 +762,7 @@ class NISlam:
             out.stage_ms = dict(self.stage_ms)
             out.metrics = self._metrics()
             return out
-        T_wk = torch.stack([kf.T_wk for kf in self.keyframes])
+        T_wk = self._output_keyframe_poses()
         T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
         points, colors = self._map_points(T_wk)
         return SystemOutput(
@@ -739,6 +775,7 @@ class NISlam:
             map_colors=colors,
             stage_ms=dict(self.stage_ms),
             metrics=self._metrics(),
+            prior_indices=torch.tensor([f for f, p in zip(self.frame_index, self.frame_prior) if p], dtype=torch.int64),
         )
 
     def _at_frame_times(self, T_geom: Tensor) -> Tensor:
@@ -773,7 +810,7 @@ class NISlam:
         }
 
     def _map_points(self, T_wk: Tensor) -> tuple[Tensor, Tensor]:
-        """Back-project every keyframe's fused orthographic map into the world, voxel-downsampled."""
+        """Back-project every keyframe's fused orthographic map into the world, voxel-downsampled, in colour."""
         k = self.cfg.kcc
         H, W = k.ortho_height, k.ortho_width
         rows, cols = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
@@ -784,9 +821,45 @@ class NISlam:
             # Orthographic pixel centres in the keyframe's own camera frame (rotation = identity).
             xyz = torch.stack([(cols[m] + 0.5 - W / 2) * r, (rows[m] + 0.5 - H / 2) * r, kf.map.depth[0].cpu()[m].double()], -1)
             pts.append(xyz @ T[:3, :3].T + T[:3, 3])
-            cols_out.append(kf.map.grey[0].cpu()[m].double())
-        grey = torch.cat(cols_out)
-        return voxel_downsample(torch.cat(pts), grey[:, None].expand(-1, 3), self.cfg.map_voxel)
+            # The keyframe's colour where it saw the pixel; pixels only later frames filled in
+            # (fusion) carry their fused grey.
+            grey = kf.map.grey[0].cpu()[m].double()[:, None].expand(-1, 3)
+            if kf.colour is not None:
+                colour, has = _fill_colour(kf.colour.double() / 255, kf.colour_valid, m)
+                grey = torch.where(has[m][:, None], colour.permute(1, 2, 0)[m], grey)  # (P, 3)
+            cols_out.append(grey)
+        return voxel_downsample(torch.cat(pts), torch.cat(cols_out), self.cfg.map_voxel)
+
+
+def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) -> tuple[Tensor, Tensor]:
+    """Spread a keyframe's orthographic colours into the map pixels only its holes-filled map holds.
+
+    The orthographic map is finer than a small image's points (and fusion fills more pixels), so
+    each round gives every wanted pixel without a colour the mean of its coloured 3x3 neighbours.
+
+    Args:
+        colour: (3, H, W) float64 colours in [0, 1], valid where ``has``.
+        has: (H, W) bool pixels holding a colour.
+        want: (H, W) bool pixels of the map.
+        rounds: most rounds (pixels farther than this from any colour keep none).
+
+    Returns:
+        (colour (3, H, W), has (H, W)) after filling.
+    """
+    import torch.nn.functional as F
+
+    colour, has = colour.clone(), has.clone()
+    for _ in range(rounds):
+        todo = want & ~has
+        if not bool(todo.any()):
+            break
+        w = has.to(colour.dtype)[None, None]
+        total = F.avg_pool2d((colour * w[0])[None], 3, stride=1, padding=1)[0]
+        count = F.avg_pool2d(w, 3, stride=1, padding=1)[0, 0]
+        new = todo & (count > 0)
+        colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
+        has = has | new
+    return colour, has
 
 
 # ---------------------------------------------------------------------- many sequences in lockstep

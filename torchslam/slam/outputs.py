@@ -3,9 +3,16 @@
 Every system writes the same files and the same ``metrics.json`` keys, so runs of different
 systems compare directly:
 
-``system, sequence, frames, processed_frames, tracked_frames, skipped_frames, keyframes,
-fps_end_to_end, fps_compute, wall_s, compute_s, stage_ms, stage_ms_total, interrupted,
-ate_rmse_m`` (``null`` without ground truth) and, with ground truth, the ATE/RPE statistics.
+``system, sequence, frames, processed_frames, tracked_frames, prior_frames, posed_frames,
+skipped_frames, keyframes, fps_end_to_end, fps_compute, wall_s, compute_s, stage_ms,
+stage_ms_total, interrupted, ate_rmse_m`` (``null`` without ground truth or when the evaluation
+failed, with ``ate_error`` saying why) and, with ground truth, the ATE/RPE statistics.
+
+``tracked_frames`` counts the frames with a pose estimated from their own data;
+``prior_frames`` those whose pose is a motion prior (``SystemOutput.prior_indices``);
+``posed_frames`` = both = the poses in ``trajectory.txt``. ``metrics.json`` is strict JSON
+(:mod:`torchslam.strictjson`): a non-finite value is written as ``null`` and listed under
+``non_finite``.
 """
 
 from __future__ import annotations
@@ -22,8 +29,11 @@ import numpy as np
 import torch
 
 from ..data.frame import Sequence
-from ..data.trajectory import Trajectory, write_tum_trajectory
+from ..data.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 from ..environment import environment_info
+from ..errors import TorchSlamError
+from ..strictjson import dumps as strict_dumps
+from ..strictjson import finite_or_none
 from .base import RunResult
 from .runfolder import OutputWriteError
 
@@ -37,6 +47,8 @@ METRIC_KEYS = (
     "frames",
     "processed_frames",
     "tracked_frames",
+    "prior_frames",
+    "posed_frames",
     "skipped_frames",
     "keyframes",
     "fps_end_to_end",
@@ -102,24 +114,89 @@ def write_ply(path: str | os.PathLike, points: torch.Tensor, colors: torch.Tenso
 
 
 def _finite(x: float) -> float | None:
-    return float(x) if x is not None and math.isfinite(x) else None
+    return finite_or_none(x)
 
 
-def evaluate_against_groundtruth(estimate: Trajectory, groundtruth: Trajectory | None) -> dict[str, Any]:
-    """ATE (rigid alignment) and RPE (1 frame) of ``estimate`` against ``groundtruth``."""
-    from ..eval import ate, metrics_dict, rpe
+# The headline figures are evo's: ``evo_ape tum groundtruth.txt trajectory.txt -a`` and
+# ``evo_rpe tum groundtruth.txt trajectory.txt -a --delta 1 --delta_unit f`` on the files.
+HEADLINE_ALIGN = "se3"
+EXACT = "exact"
 
-    if groundtruth is None or len(groundtruth) == 0:
-        return {"ate_rmse_m": None, "groundtruth": False}
-    if len(estimate) < 2:
-        return {"ate_rmse_m": None, "groundtruth": True, "eval_note": "fewer than 2 estimated poses"}
+
+def _evaluate(estimate: Trajectory, reference: Trajectory, max_dt: float) -> tuple[dict[str, Any] | None, str | None]:
+    """ATE and RPE (rigid alignment, 1-frame pairs, evo's association): (flat metrics, None) or (None, why not)."""
+    from ..eval import EvaluationError, ate, metrics_dict, rpe
+
     try:
-        a = ate(estimate, groundtruth, align="se3")
-        r = rpe(estimate, groundtruth, delta=1, unit="frames", align="se3")
-    except ValueError as exc:  # e.g. no timestamps in common
-        return {"ate_rmse_m": None, "groundtruth": True, "eval_note": str(exc)}
-    out = {"groundtruth": True}
-    out.update(metrics_dict(a, r))
+        a = ate(estimate, reference, align=HEADLINE_ALIGN, max_dt=max_dt, association="nearest")
+        r = rpe(estimate, reference, delta=1, unit="frames", align=HEADLINE_ALIGN, max_dt=max_dt, association="nearest")
+    except EvaluationError as exc:  # e.g. no timestamps in common
+        return None, str(exc)
+    except (RuntimeError, ValueError) as exc:  # the alignment's SVD on overflowing values
+        return None, f"non-finite values in the evaluation ({exc.__class__.__name__}: {str(exc).splitlines()[0]})"
+    if not all(math.isfinite(v) for v in a.stats.values()):
+        return None, (
+            f"non-finite ATE (rmse {a.stats['rmse']}): the ground truth or the estimate holds values too large "
+            "to evaluate in float64"
+        )
+    return metrics_dict(a, r), None
+
+
+def evaluate_against_groundtruth(
+    estimate: Trajectory,
+    groundtruth: Trajectory | None,
+    groundtruth_raw: Trajectory | None = None,
+    estimate_at_frames: Trajectory | None = None,
+) -> dict[str, Any]:
+    """The run's accuracy figures, as ``metrics.json`` records them.
+
+    With ``groundtruth_raw`` (the sequence's ``groundtruth.txt`` as read) the headline
+    ``ate_rmse_m`` and the RPE are evo's on the raw file: SE(3) alignment, evo's association
+    (nearest timestamp within ``EVO_MAX_DT`` = 0.01 s, no offset), so they equal
+    ``evo_ape tum groundtruth.txt trajectory.txt -a`` when ``estimate`` is ``trajectory.txt`` as
+    written; ``ate_rmse_interpolated_m`` is the ATE against ``groundtruth`` (the ground truth
+    interpolated at the frame timestamps). Without it (synthetic sequences) ``groundtruth``
+    holds the exact pose at each frame timestamp and the association is exact (same stamp).
+    ``estimate_at_frames`` (default ``estimate``) is the estimate at the unrounded frame
+    timestamps, for the exact association of the interpolated variant.
+
+    Keys: ``groundtruth`` (bool), ``ate_rmse_m`` (None without ground truth or when the
+    evaluation failed), ``ate_groundtruth`` (``"groundtruth.txt"`` or ``"sequence"``),
+    ``ate_association`` (``"nearest"`` or ``"exact"``), ``ate_association_max_dt_s``, the
+    ATE/RPE statistics of :func:`torchslam.eval.metrics_dict`, and on failure ``ate_error``
+    (also as ``eval_note``): why no ATE could be computed, e.g. non-finite values.
+    """
+    from ..eval import EVO_MAX_DT, ate
+
+    if groundtruth_raw is not None and len(groundtruth_raw):
+        reference, max_dt, association, source = groundtruth_raw, EVO_MAX_DT, "nearest", "groundtruth.txt"
+    elif groundtruth is not None and len(groundtruth):
+        reference, max_dt, association, source = groundtruth, 0.0, EXACT, "sequence"
+    else:
+        return {"ate_rmse_m": None, "groundtruth": False}
+    out: dict[str, Any] = {
+        "groundtruth": True,
+        "ate_rmse_m": None,
+        "ate_groundtruth": source,
+        "ate_association": association,
+        "ate_association_max_dt_s": max_dt,
+    }
+    if len(estimate) < 3:
+        out["eval_note"] = f"{len(estimate)} estimated pose(s): the SE(3) alignment needs at least 3"
+        return out
+    figures, error = _evaluate(estimate, reference, max_dt)
+    if error is not None:
+        out["ate_error"] = out["eval_note"] = error
+        return out
+    out.update(figures)
+    out["ate_association"] = association
+    if reference is groundtruth_raw and groundtruth is not None and len(groundtruth):
+        try:
+            at_frames = estimate if estimate_at_frames is None else estimate_at_frames
+            interp = ate(at_frames, groundtruth, align=HEADLINE_ALIGN, max_dt=0.0)
+            out["ate_rmse_interpolated_m"] = finite_or_none(interp.stats["rmse"])
+        except (TorchSlamError, RuntimeError, ValueError):
+            out["ate_rmse_interpolated_m"] = None
     return out
 
 
@@ -184,12 +261,16 @@ def write_run(
     if config is not None:
         attempt("config.yaml", lambda p: p.write_text(yaml.safe_dump(dict(config), sort_keys=False)))
     n = max(result.frames_processed, 1)
+    n_prior = 0 if o.prior_indices is None else len(o.prior_indices)
     metrics: dict[str, Any] = {
         "system": system,
         "sequence": sequence.name,
         "frames": result.frames_total,
         "processed_frames": result.frames_processed,
-        "tracked_frames": len(o.frame_indices),
+        # A pose from the frame's own data; frames that took a motion prior are counted apart.
+        "tracked_frames": len(o.frame_indices) - n_prior,
+        "prior_frames": n_prior,
+        "posed_frames": len(o.frame_indices),
         "skipped_frames": result.frames_skipped,
         "skipped": [{"index": int(i), "reason": r} for i, r in result.skipped],
         "keyframes": len(o.keyframe_indices),
@@ -201,22 +282,16 @@ def write_run(
         "stage_ms_total": dict(o.stage_ms),
         "interrupted": result.interrupted,
     }
-    metrics.update(evaluate_against_groundtruth(estimate, sequence.groundtruth))
+    raw = getattr(sequence, "groundtruth_raw", None)
+    # The headline is evo's on the files: the estimate as trajectory.txt holds it (1e-9 m, 1 us).
+    written = read_tum_trajectory(out / "trajectory.txt") if raw is not None else estimate
+    metrics.update(evaluate_against_groundtruth(written, sequence.groundtruth, raw, estimate_at_frames=estimate))
     metrics.update(o.metrics)
     if extra:
         metrics.update(extra)
     metrics["environment"] = environment_info()
-    attempt("metrics.json", lambda p: p.write_text(json.dumps(metrics, indent=2, default=_json_default) + "\n"))
+    text = strict_dumps(metrics)
+    attempt("metrics.json", lambda p: p.write_text(text + "\n"))
     if failed:
         raise OutputWriteError(out, written, failed)
-    return metrics
-
-
-def _json_default(v: Any) -> Any:
-    if isinstance(v, torch.Tensor):
-        return v.tolist()
-    if isinstance(v, (np.generic,)):
-        return v.item()
-    if isinstance(v, Path):
-        return str(v)
-    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+    return json.loads(text)

@@ -186,7 +186,7 @@ def run(
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)
         # The results are on disk; what follows only adds TensorBoard figures.
         if options.tensorboard:
-            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
+            log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}")
         log_hparams(monitor, resolved, metrics)
     finally:
         monitor.close()
