@@ -284,8 +284,8 @@ def write_run(
     }
     raw = getattr(sequence, "groundtruth_raw", None)
     # The headline is evo's on the files: the estimate as trajectory.txt holds it (1e-9 m, 1 us).
-    written = read_tum_trajectory(out / "trajectory.txt") if raw is not None else estimate
-    metrics.update(evaluate_against_groundtruth(written, sequence.groundtruth, raw, estimate_at_frames=estimate))
+    on_disk = read_tum_trajectory(out / "trajectory.txt") if raw is not None and "trajectory.txt" in written else estimate
+    metrics.update(evaluate_against_groundtruth(on_disk, sequence.groundtruth, raw, estimate_at_frames=estimate))
     metrics.update(o.metrics)
     if extra:
         metrics.update(extra)
