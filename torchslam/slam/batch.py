@@ -50,9 +50,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ..config import config_to_dict
+from ..config import config_to_dict, load_yaml
 from ..data.frame import Sequence
 from ..data.synthetic import SYNTHETIC_TRAJECTORIES, SyntheticConfig, generate_sequence
 from ..data.trajectory import read_tum_trajectory, write_tum_trajectory
@@ -483,8 +481,8 @@ def completed_run(
             why = f"trajectory.txt: {exc}"
     if why is None and metrics is not None and config is not None:
         try:
-            saved = yaml.safe_load((folder / "config.yaml").read_text())
-        except (OSError, yaml.YAMLError) as exc:
+            saved = load_yaml((folder / "config.yaml").read_text(), str(folder / "config.yaml"))
+        except (OSError, ConfigError) as exc:
             saved, why = None, f"config.yaml unreadable ({exc.__class__.__name__})"
         if why is None and _without_device(saved) != _without_device(dict(config)):
             why = "the configuration differs"

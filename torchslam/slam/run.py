@@ -10,13 +10,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ..config import config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides
+from ..config import config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
-from ..errors import ConfigError
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -92,17 +89,7 @@ def resolve_config(
     layers: list[tuple[str, dict[str, Any]]] = []
     if config_path is not None:
         path = Path(config_path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config ({exc.strerror or exc})") from exc
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-            raise ConfigError(f"{path}{loc}: malformed YAML ({getattr(exc, 'problem', exc)})") from exc
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
-        layers.append((str(path), dict(loaded or {})))
+        layers.append((str(path), read_yaml_mapping(path)))
     if params is not None:
         from ..learn.params import (
             checkpoint_values,  # lazy: torch.load and the learn package
