@@ -114,13 +114,16 @@ def parse_choice(cls, value, what: str):
 class FieldError(ConfigError):
     """A config field holds a value outside its declared limits.
 
+    The message is ``Owner.field: reason`` (``KCCConfig.sigma: expected ...``); config loading
+    names the dotted key instead (``kcc.sigma``).
+
     Attributes:
-        field: the field's name (config loading prefixes the dotted section, ``kcc.sigma``).
+        field: the field's name.
         reason: what was expected and what was received.
     """
 
-    def __init__(self, field: str, reason: str) -> None:
-        super().__init__(f"{field}: {reason}")
+    def __init__(self, field: str, reason: str, owner: str | None = None) -> None:
+        super().__init__(f"{owner + '.' if owner else ''}{field}: {reason}")
         self.field = field
         self.reason = reason
 
@@ -242,10 +245,11 @@ def check_limits(cfg) -> None:
             continue
         if shape == "tuple":
             if not isinstance(value, (tuple, list)):
-                raise FieldError(name, f"expected a list of {limit.describe(integer).removeprefix('a ').removeprefix('an ')}s, got {value!r}")
+                raise FieldError(name, f"expected a list, got {value!r}", cls.__name__)
             bad = [v for v in value if limit.check(v, integer) is not None]
             if bad:
-                raise FieldError(name, f"expected each value {limit.describe(integer)}, got {bad[0]!r} in {list(value)!r}")
+                raise FieldError(name, f"expected each value {limit.describe(integer)}, got {bad[0]!r} in {list(value)!r}", cls.__name__)
             continue
         if limit.check(value, integer) is not None:
-            raise FieldError(name, f"expected {limit.describe(integer)}{' or None' if shape == 'optional' else ''}, got {value!r}")
+            alternative = " or None" if shape == "optional" else ""
+            raise FieldError(name, f"expected {limit.describe(integer)}{alternative}, got {value!r}", cls.__name__)

@@ -8,12 +8,13 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from ..config import config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -46,6 +47,13 @@ class DataConfig:
     max_gap: float = 0.02
     prefetch: int = 2
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "stride": AT_LEAST_1, "start": NON_NEGATIVE, "end": NON_NEGATIVE, "max_gap": POSITIVE, "prefetch": NON_NEGATIVE,
+    }
+
+    def __post_init__(self) -> None:
+        check_limits(self)
 
 
 @dataclass(frozen=True)
