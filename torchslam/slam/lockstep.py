@@ -115,7 +115,8 @@ def run_lockstep(
         systems = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
         step = track_frames
     # Every NI-SLAM sequence keeps its keyframe images at once; GC-SLAM tracks one frame at a time.
-    check_run_memory(systems[0], [getattr(s, "camera", None) for s in sequences], batch=1 if isinstance(system_cfg, GCSlamConfig) else n)
+    batch = 1 if isinstance(system_cfg, GCSlamConfig) else n
+    check_run_memory(systems[0], [getattr(s, "camera", None) for s in sequences], batch=batch)
     failed: list[BaseException | None] = [None] * n
     outputs: list[SystemOutput | None] = [None] * n
     frames_in: list[Iterator[Frame] | None] = [None] * n

@@ -108,7 +108,9 @@ def _gb(n: int) -> str:
     return f"{n / 1e9:.3g} GB" if n < 1e11 else f"{n / 1e9:,.0f} GB"
 
 
-def check_memory(cfg, camera: PinholeCamera, device: str | torch.device = "cpu", batch: int = 1, available: int | None = None) -> MemoryEstimate:
+def check_memory(
+    cfg, camera: PinholeCamera, device: str | torch.device = "cpu", batch: int = 1, available: int | None = None
+) -> MemoryEstimate:
     """Refuse a configuration whose estimated memory exceeds the device's, before anything is allocated.
 
     Args:
