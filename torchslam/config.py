@@ -18,15 +18,17 @@ from typing import Any, Mapping, TypeVar
 
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, FieldError
 
 __all__ = [
     "config_file",
     "config_from_dict",
     "config_to_dict",
     "load_config",
+    "load_yaml",
     "parse_overrides",
     "preset_names",
+    "read_yaml_mapping",
     "save_config",
 ]
 
@@ -72,10 +74,23 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
             return value
         raise ConfigError(f"{where}{key}: expected true or false, got {value!r}")
     if tp is int:
+        if isinstance(value, str):
+            # "+5", "1_000" and the like, whatever the YAML reader left as a string.
+            try:
+                return int(value.strip())
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}{key}: expected an integer, got {value!r}")
         return value
     if tp is float:
+        if isinstance(value, str):
+            # YAML 1.1 reads "2e-1", "1E3" and "5e4" as strings (it wants "2.0e-1"): take every
+            # spelling Python's float() takes; the field's limits then decide on inf and NaN.
+            try:
+                return float(value.strip())
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}{key}: expected a number, got {value!r}")
         return float(value)
@@ -116,6 +131,8 @@ def _build(cls, data: Mapping[str, Any], prefix: str = "", where: str = ""):
             kwargs[name] = _coerce(value, tp, f"{prefix}{name}", where)
     try:
         return dataclasses.replace(base, **kwargs)
+    except FieldError as exc:
+        raise ConfigError(f"{where}{prefix}{exc.field}: {exc.reason}") from exc
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"{where}{prefix.rstrip('.') or cls.__name__}: {exc}") from exc
 
@@ -157,8 +174,8 @@ def parse_overrides(pairs: list[str] | tuple[str, ...]) -> dict[str, Any]:
         if not key:
             raise ConfigError(f"--set {pair!r}: empty key")
         try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError as exc:
+            value = load_yaml(raw, f"--set {key}") if raw.strip() else ""
+        except ConfigError as exc:
             raise ConfigError(f"--set {key}: cannot parse value {raw!r} ({exc})") from exc
         _set_dotted(out, key, value, f"--set {key}")
     return out
@@ -194,6 +211,69 @@ def deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a mapping that repeats a key (PyYAML keeps the last silently)."""
+
+    source = "<yaml>"
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node)
+                line = key_node.start_mark.line + 1
+                try:
+                    first = seen.get(key)
+                except TypeError:  # an unhashable key: PyYAML's own error follows
+                    continue
+                if first is not None:
+                    raise ConfigError(f"{self.source}:{line}: duplicate key {key!r} (first given at {self.source}:{first})")
+                seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str, source: str = "<yaml>") -> Any:
+    """Parse YAML text with the safe loader, refusing duplicate keys: every YAML torchslam reads goes here.
+
+    Args:
+        text: the YAML document.
+        source: what the text is (a file name, ``--set key``) for the messages.
+
+    Raises:
+        ConfigError: for malformed YAML (``source:line:column``), an unsafe tag, or a mapping
+            with a duplicate key (naming both lines).
+    """
+    loader = _UniqueKeyLoader(text)
+    loader.source = source
+    try:
+        return loader.get_single_data()
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"{source}{loc}: malformed YAML ({getattr(exc, 'problem', None) or exc})") from exc
+    finally:
+        loader.dispose()
+
+
+def read_yaml_mapping(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a YAML file that holds a mapping (or nothing) through ``load_yaml``.
+
+    Raises:
+        ConfigError: naming the file for an unreadable file, malformed YAML, a duplicate key or
+            a top level that is not a mapping.
+    """
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({getattr(exc, 'strerror', None) or exc})") from exc
+    loaded = load_yaml(text, str(path))
+    if loaded is not None and not isinstance(loaded, Mapping):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
+    return dict(loaded or {})
+
+
 def load_config(cls: type[C], path: str | os.PathLike | None = None, overrides: list[str] | tuple[str, ...] = ()) -> C:
     """Load ``cls`` defaults, then a YAML file, then ``key=value`` overrides.
 
@@ -205,19 +285,7 @@ def load_config(cls: type[C], path: str | os.PathLike | None = None, overrides: 
     source = None
     if path is not None:
         source = str(path)
-        try:
-            text = Path(path).read_text()
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config ({exc.strerror or exc})") from exc
-        try:
-            loaded = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-            raise ConfigError(f"{path}{loc}: malformed YAML ({getattr(exc, 'problem', exc)})") from exc
-        if loaded is not None and not isinstance(loaded, Mapping):
-            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
-        data = dict(loaded or {})
+        data = read_yaml_mapping(path)
     over = parse_overrides(overrides)
     if over:
         # A bad key or value is reported against the layer it came from.

@@ -1,12 +1,22 @@
-"""Errors raised by torchslam and the shape checker used at public boundaries."""
+"""Errors raised by torchslam, the shape checker used at public boundaries and the config field limits."""
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
+import numbers
+import types
+import typing
 from collections.abc import MutableMapping
+from dataclasses import dataclass
 
 import torch
 
-__all__ = ["TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "check_shape", "check_float", "parse_choice"]
+__all__ = [
+    "TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "FieldError", "Limit",
+    "check_shape", "check_float", "check_limits", "parse_choice",
+]
 
 
 class TorchSlamError(Exception):
@@ -95,3 +105,151 @@ def parse_choice(cls, value, what: str):
     except ValueError:
         valid = ", ".join(m.value for m in cls)
         raise ConfigError(f"{what}: unknown {value!r}; valid: {valid}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Config field limits: one declaration per numeric field, one check for every config class.
+
+
+class FieldError(ConfigError):
+    """A config field holds a value outside its declared limits.
+
+    The message is ``Owner.field: reason`` (``KCCConfig.sigma: expected ...``); config loading
+    names the dotted key instead (``kcc.sigma``).
+
+    Attributes:
+        field: the field's name.
+        reason: what was expected and what was received.
+    """
+
+    def __init__(self, field: str, reason: str, owner: str | None = None) -> None:
+        super().__init__(f"{owner + '.' if owner else ''}{field}: {reason}")
+        self.field = field
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Limit:
+    """Allowed values of one numeric config field.
+
+    A float field is always finite unless ``allow_inf`` (NaN is never allowed); bounds apply
+    to every number of the field (each element of a tuple field). ``Limit()`` means any finite
+    number, and is the declaration of a field that may be negative.
+
+    Attributes:
+        gt, ge, lt, le: strict and inclusive lower and upper bounds, or None.
+        allow_inf: +inf/-inf are accepted (within the bounds); e.g. "no limit" time constants.
+        odd: integers must be odd (window sides).
+    """
+
+    gt: float | None = None
+    ge: float | None = None
+    lt: float | None = None
+    le: float | None = None
+    allow_inf: bool = False
+    odd: bool = False
+
+    def describe(self, integer: bool) -> str:
+        """The expectation in words: ``"a finite number > 0"``, ``"an odd integer >= 1"``."""
+        kind = ("an odd integer" if self.odd else "an integer") if integer else (
+            "a number" if self.allow_inf else "a finite number"
+        )
+        bounds = [f"{op} {_num(v)}" for op, v in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le)) if v is not None]
+        text = kind + (" " + " and ".join(bounds) if bounds else "")
+        return text + (" (inf allowed)" if self.allow_inf and not integer else "")
+
+    def check(self, value, integer: bool) -> str | None:
+        """Return why ``value`` is not allowed, or None when it is."""
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            return "not a number"
+        if integer and not isinstance(value, numbers.Integral):
+            return "not an integer"
+        v = float(value)
+        if math.isnan(v) or (math.isinf(v) and not self.allow_inf):
+            return "not finite"
+        if (
+            (self.gt is not None and not v > self.gt)
+            or (self.ge is not None and not v >= self.ge)
+            or (self.lt is not None and not v < self.lt)
+            or (self.le is not None and not v <= self.le)
+            or (self.odd and int(value) % 2 != 1)
+        ):
+            return "out of range"
+        return None
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() and abs(v) < 1e15 else f"{v:g}"
+
+
+ANY = Limit()
+POSITIVE = Limit(gt=0)
+NON_NEGATIVE = Limit(ge=0)
+AT_LEAST_1 = Limit(ge=1)
+FRACTION = Limit(ge=0, le=1)
+
+
+def _number_kind(tp) -> tuple[str, bool] | None:
+    """``(shape, integer)`` of a numeric field type: shape "scalar", "optional" or "tuple"; None otherwise."""
+    if tp is bool:
+        return None
+    if tp in (int, float):
+        return "scalar", tp is int
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1 and type(None) in args:
+            inner = _number_kind(rest[0])
+            return ("optional", inner[1]) if inner is not None and inner[0] == "scalar" else None
+        return None
+    if origin is tuple and args and all(a in (int, float) or a is Ellipsis for a in args):
+        return "tuple", all(a is int or a is Ellipsis for a in args)
+    return None
+
+
+@functools.cache
+def numeric_fields(cls) -> dict[str, tuple[str, bool]]:
+    """The numeric fields of config dataclass ``cls``: name -> ``(shape, integer)`` (see ``_number_kind``)."""
+    hints = typing.get_type_hints(cls)
+    out = {}
+    for f in dataclasses.fields(cls):
+        kind = _number_kind(hints[f.name])
+        if kind is not None:
+            out[f.name] = kind
+    return out
+
+
+def check_limits(cfg) -> None:
+    """Check every numeric field of the config dataclass ``cfg`` against its declared ``Limit``.
+
+    A config class declares ``LIMITS: ClassVar[dict[str, Limit]]``, one entry per numeric
+    (int, float, optional or tuple of them) field; a field without an entry is refused as a
+    programming error, so a new field cannot go unchecked. Call it from ``__post_init__``.
+
+    Raises:
+        FieldError: naming the field, the expectation and the value.
+        TypeError: for a numeric field without a declared limit, or a limit for no such field.
+    """
+    cls = type(cfg)
+    limits: dict[str, Limit] = getattr(cls, "LIMITS", {})
+    fields_ = numeric_fields(cls)
+    missing = sorted(set(fields_) - set(limits))
+    extra = sorted(set(limits) - set(fields_))
+    if missing or extra:
+        raise TypeError(f"{cls.__name__}.LIMITS: no limit declared for {missing}, limits for non-numeric or absent fields {extra}")
+    for name, (shape, integer) in fields_.items():
+        value = getattr(cfg, name)
+        limit = limits[name]
+        if shape == "optional" and value is None:
+            continue
+        if shape == "tuple":
+            if not isinstance(value, (tuple, list)):
+                raise FieldError(name, f"expected a list, got {value!r}", cls.__name__)
+            bad = [v for v in value if limit.check(v, integer) is not None]
+            if bad:
+                raise FieldError(name, f"expected each value {limit.describe(integer)}, got {bad[0]!r} in {list(value)!r}", cls.__name__)
+            continue
+        if limit.check(value, integer) is not None:
+            alternative = " or None" if shape == "optional" else ""
+            raise FieldError(name, f"expected {limit.describe(integer)}{alternative}, got {value!r}", cls.__name__)

@@ -209,7 +209,7 @@ def test_bad_input_raises():
         db.query(torch.empty(5, 32, dtype=torch.uint8, device="meta"))
     with pytest.raises(ConfigError, match="tables/bits"):
         MILDConfig(tables=16, bits=8)
-    with pytest.raises(ConfigError, match="bits: at most 32"):
+    with pytest.raises(ConfigError, match="bits: expected an integer >= 8 and <= 32"):
         MILDConfig(tables=4, bits=64)
     with pytest.raises(ConfigError, match="top_k"):
         MILDConfig(top_k=0)

@@ -8,6 +8,17 @@ Convention:
 A ``calibration.txt`` holds, after any ``#`` comment lines, exactly one line
 ``fx fy cx cy depth_scale width height``, optionally followed by 4, 5 or 8 lens distortion
 coefficients ``k1 k2 p1 p2 [k3 [k4 k5 k6]]`` (``PinholeCamera.distortion``).
+
+Plausibility (``intrinsics_problem``), checked wherever intrinsics enter torchslam (a
+``calibration.txt``, an explicit camera, the presets, the synthetic generator's settings):
+
+- the principal point lies inside the image, ``-0.5 <= cx <= width - 0.5`` and likewise ``cy``
+  (pixel centres at integers, so the image edges are at -0.5 and ``width - 0.5``);
+- the field of view ``2 atan(width / (2 fx))`` (and ``2 atan(height / (2 fy))``) lies between
+  ``MIN_FOV_DEG`` = 10 and ``MAX_FOV_DEG`` = 170 degrees: for a 640-pixel-wide image
+  ``28 <= fx <= 3658`` (TUM's Kinects: about 58 degrees, fx = 517-535);
+- ``DEPTH_SCALE_RANGE``: ``1 <= depth_scale <= 100000`` raw units per metre (1: raw values in
+  metres, 1000: millimetres, 5000: TUM, 100000: 10 micrometre steps).
 """
 
 from __future__ import annotations
@@ -21,9 +32,70 @@ from pathlib import Path
 from ..errors import DataFormatError, ShapeError
 from ..geometry import PinholeCamera
 
-__all__ = ["CameraPreset", "Calibration", "INTRINSICS_PRESETS", "preset_for_name", "read_calibration", "resolve_calibration"]
+__all__ = [
+    "CameraPreset", "Calibration", "DEPTH_SCALE_RANGE", "INTRINSICS_PRESETS", "MAX_FOV_DEG", "MIN_FOV_DEG",
+    "intrinsics_problem", "preset_for_name", "read_calibration", "resolve_calibration",
+]
 
 CALIBRATION_FILE = "calibration.txt"
+
+# Plausible intrinsics (module docstring): field of view per axis, degrees, and raw depth units per metre.
+MIN_FOV_DEG = 10.0
+MAX_FOV_DEG = 170.0
+DEPTH_SCALE_RANGE = (1.0, 100000.0)
+
+
+def focal_range(size: int) -> tuple[float, float]:
+    """Smallest and largest focal length, pixels, of an image axis of ``size`` pixels whose field of
+    view lies in ``[MIN_FOV_DEG, MAX_FOV_DEG]``: ``size / (2 tan(fov / 2))``."""
+    return (size / (2.0 * math.tan(math.radians(MAX_FOV_DEG) / 2)), size / (2.0 * math.tan(math.radians(MIN_FOV_DEG) / 2)))
+
+
+def intrinsics_problem(
+    fx: float, fy: float, cx: float, cy: float, width: int, height: int, depth_scale: float | None = None
+) -> tuple[str, str] | None:
+    """Say what is implausible about pinhole intrinsics (module docstring for the limits), or None.
+
+    Args:
+        fx, fy: focal lengths, pixels.
+        cx, cy: principal point, pixels (pixel centres at integers).
+        width, height: image size, pixels.
+        depth_scale: raw depth units per metre, or None to skip that check.
+
+    Returns:
+        None when plausible, else ``(field, reason)``: the first offending value's name
+        (``"fx"``, ``"cx"``, ``"depth_scale"`` ...) and what was expected and received.
+    """
+    values = {"fx": fx, "fy": fy, "cx": cx, "cy": cy, **({} if depth_scale is None else {"depth_scale": depth_scale})}
+    for name, v in values.items():
+        if not math.isfinite(v):
+            return name, f"expected a finite number, got {v!r}"
+    for name, f, size, axis in (("fx", fx, width, "horizontal"), ("fy", fy, height, "vertical")):
+        low, high = focal_range(size)
+        if not low <= f <= high:
+            fov = math.degrees(2 * math.atan(size / (2 * f))) if f > 0 else float("nan")
+            return name, (
+                f"{name} = {f:g} px gives a {axis} field of view of {fov:.3g} degrees over {size} px; a camera has "
+                f"{MIN_FOV_DEG:g} to {MAX_FOV_DEG:g} degrees, i.e. {low:.4g} <= {name} <= {high:.4g} px"
+            )
+    for name, c, size in (("cx", cx, width), ("cy", cy, height)):
+        if not -0.5 <= c <= size - 0.5:
+            return name, f"principal point {name} = {c:g} px lies outside the image (-0.5 to {size - 0.5:g} px for {size} px)"
+    if depth_scale is not None and _depth_scale_problem(depth_scale) is not None:
+        return "depth_scale", _depth_scale_problem(depth_scale)
+    return None
+
+
+def _depth_scale_problem(depth_scale: float) -> str | None:
+    if DEPTH_SCALE_RANGE[0] <= depth_scale <= DEPTH_SCALE_RANGE[1]:
+        return None
+    low, high = DEPTH_SCALE_RANGE
+    return f"depth_scale: expected {low:g} to {high:g} raw depth units per metre (1000: millimetres, 5000: TUM), got {depth_scale:g}"
+
+
+def _camera_problem(camera: PinholeCamera, depth_scale: float | None = None) -> tuple[str, str] | None:
+    c = camera
+    return intrinsics_problem(c.fx, c.fy, c.cx, c.cy, c.width, c.height, depth_scale)
 
 
 @dataclass(frozen=True)
@@ -100,7 +172,8 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
 
     Raises:
         DataFormatError: naming the file (and line) for an unreadable file, a missing or repeated
-            data line, a wrong number of values, a non-number, or a non-positive value.
+            data line, a wrong number of values, a non-number, a non-positive value, or
+            implausible intrinsics (``intrinsics_problem``).
     """
     path = Path(path)
     try:
@@ -144,6 +217,9 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
         camera = PinholeCamera(fx, fy, cx, cy, width, height, distortion)
     except ShapeError as exc:
         raise DataFormatError(f"{where}: {exc}") from exc
+    problem = _camera_problem(camera, depth_scale)
+    if problem is not None:
+        raise DataFormatError(f"{where}: implausible calibration: {problem[1]}")
     return camera, depth_scale
 
 
@@ -169,7 +245,8 @@ def resolve_calibration(
     Raises:
         DataFormatError: when neither argument, file nor preset gives a value (the message says
             to add ``calibration.txt``), or ``calibration.txt`` is malformed.
-        ShapeError: for a ``camera`` that is not a PinholeCamera or a non-positive ``depth_scale``.
+        ShapeError: for a ``camera`` that is not a PinholeCamera, implausible ``camera``
+            intrinsics, or a ``depth_scale`` outside ``DEPTH_SCALE_RANGE``.
     """
     root = Path(root)
     if camera is not None and not isinstance(camera, PinholeCamera):
@@ -182,6 +259,12 @@ def resolve_calibration(
         if not ok:
             raise ShapeError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
         depth_scale = float(depth_scale)
+        if not DEPTH_SCALE_RANGE[0] <= depth_scale <= DEPTH_SCALE_RANGE[1]:
+            raise ShapeError(_depth_scale_problem(depth_scale))
+    if camera is not None:
+        problem = _camera_problem(camera)
+        if problem is not None:
+            raise ShapeError(f"camera: implausible intrinsics: {problem[1]}")
     fallback: tuple[PinholeCamera, float] | None = None
     fallback_source = ""
     calib_path = root / CALIBRATION_FILE

@@ -42,16 +42,17 @@ import shutil
 import threading
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, ClassVar, Iterator
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, check_float, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, FieldError, Limit, check_float, check_limits, check_shape
 from ..geometry import PinholeCamera, se3_from_Rt, so3_exp, vex
 from ..imu import AttitudeStream, ImuData, ImuNoise, Kinematics, ahrs_attitude, simulate_imu, time_derivatives
+from .calibration import DEPTH_SCALE_RANGE, intrinsics_problem
 from .frame import Frame
 from .trajectory import Trajectory, write_tum_trajectory
 
@@ -154,59 +155,32 @@ class SyntheticConfig:
     texture_density: float = 128.0
     batch_size: int = 8
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "frames": AT_LEAST_1, "width": AT_LEAST_1, "height": AT_LEAST_1, "fps": POSITIVE, "seed": Limit(),
+        "period": POSITIVE, "fx": POSITIVE, "fy": POSITIVE, "cx": Limit(), "cy": Limit(), "depth_noise_k": NON_NEGATIVE,
+        "depth_holes": Limit(ge=0, lt=1), "depth_scale": Limit(ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1]),
+        "max_depth": POSITIVE, "imu_rate": POSITIVE, "gyro_noise_density": NON_NEGATIVE, "gyro_bias_walk": NON_NEGATIVE,
+        "accel_noise_density": NON_NEGATIVE, "accel_bias_walk": NON_NEGATIVE, "gyro_bias_init": NON_NEGATIVE,
+        "accel_bias_init": NON_NEGATIVE, "gravity": POSITIVE, "attitude_time_constant": Limit(gt=0, allow_inf=True),
+        "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1,
+    }
+
     def __post_init__(self) -> None:
         def fail(key: str, expected: str) -> None:
             raise ConfigError(f"SyntheticConfig.{key}: expected {expected}, got {getattr(self, key)!r}")
 
-        def is_int(v) -> bool:
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-        def is_num(v) -> bool:
-            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-
-        for key in ("frames", "width", "height", "batch_size"):
-            if not is_int(getattr(self, key)) or getattr(self, key) < 1:
-                fail(key, "an integer >= 1")
-        if not is_int(self.seed):
-            fail("seed", "an integer")
+        check_limits(self)
         if self.trajectory not in SYNTHETIC_TRAJECTORIES:
             fail("trajectory", "one of " + ", ".join(repr(t) for t in SYNTHETIC_TRAJECTORIES))
         if not isinstance(self.depth_noise, bool):
             fail("depth_noise", "true or false")
-        positive = ("fps", "period", "depth_scale", "max_depth", "imu_rate", "gravity", "texture_density")
-        for key in positive:
-            v = getattr(self, key)
-            if not is_num(v) or not math.isfinite(v) or v <= 0:
-                fail(key, "a finite number > 0")
-        non_negative = (
-            "depth_noise_k",
-            "gyro_noise_density",
-            "gyro_bias_walk",
-            "accel_noise_density",
-            "accel_bias_walk",
-            "gyro_bias_init",
-            "accel_bias_init",
-        )
-        for key in non_negative:
-            v = getattr(self, key)
-            if not is_num(v) or not math.isfinite(v) or v < 0:
-                fail(key, "a finite number >= 0")
-        if not is_num(self.depth_holes) or not 0 <= self.depth_holes < 1:
-            fail("depth_holes", "a fraction in [0, 1)")
-        if not is_num(self.attitude_time_constant) or not self.attitude_time_constant > 0:
-            fail("attitude_time_constant", "seconds > 0 (inf: gyro only)")
-        if self.texture_density > 1024:
-            fail("texture_density", "at most 1024 texels per metre")
         if self.max_depth * self.depth_scale > 65535:
             fail("max_depth", f"at most {65535 / self.depth_scale:.3f} m so depth fits 16-bit PNGs at depth_scale")
-        for key in ("fx", "fy"):
-            v = getattr(self, key)
-            if v is not None and (not is_num(v) or not math.isfinite(v) or v <= 0):
-                fail(key, "None or a focal length > 0 in pixels")
-        for key in ("cx", "cy"):
-            v = getattr(self, key)
-            if v is not None and (not is_num(v) or not math.isfinite(v)):
-                fail(key, "None or a finite principal point in pixels")
+        # The same plausibility test as a calibration.txt (calibration.intrinsics_problem).
+        cam = camera_from_config(self)
+        problem = intrinsics_problem(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, self.depth_scale)
+        if problem is not None:
+            raise FieldError(*problem, owner=type(self).__name__)
 
     @classmethod
     def keys(cls) -> tuple[str, ...]:

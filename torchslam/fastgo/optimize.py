@@ -29,12 +29,13 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape
 from ..optim.blocksparse import SolverMethod
 from ..optim.lm import LMConfig, levenberg_marquardt_se3
 from ..optim.robust import RobustKernel, robust_weight
@@ -73,7 +74,8 @@ class FastGOConfig:
         iterations: maximum LM iterations per robust round (GC-SLAM runs 3 per keyframe).
         tol: stop when a step lowers (or is predicted to lower) the cost by at most
             ``tol * cost``.
-        step_tol: stop when no pose moves by more than this (metres / radians).
+        step_tol: stop when no pose moves by more than this (metres / radians). A negative
+            ``tol`` or ``step_tol`` turns that test off.
         damping: initial Levenberg-Marquardt factor (0: start as pure Gauss-Newton).
         solver: linear solver, a :class:`~torchslam.optim.SolverMethod` or its name.
         leaf_size: supernode size of the sparse Cholesky analysis, in keyframes.
@@ -112,15 +114,16 @@ class FastGOConfig:
     min_correspondences: int = 3
     collinear_tol: float = 1e-9
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "iterations": NON_NEGATIVE, "tol": Limit(), "step_tol": Limit(), "damping": NON_NEGATIVE,
+        "leaf_size": AT_LEAST_1, "robust_scale": POSITIVE, "robust_rounds": AT_LEAST_1, "robust_tol": NON_NEGATIVE,
+        "min_correspondences": Limit(ge=3), "collinear_tol": NON_NEGATIVE,
+    }
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "solver", SolverMethod.parse(self.solver))
         object.__setattr__(self, "robust", RobustKernel.parse(self.robust))
-        if not self.robust_scale > 0:
-            raise ConfigError(f"robust_scale: expected > 0 metres, got {self.robust_scale}")
-        if self.robust_rounds < 1:
-            raise ConfigError(f"robust_rounds: expected >= 1, got {self.robust_rounds}")
-        if self.min_correspondences < 3:
-            raise ConfigError(f"min_correspondences: expected >= 3, got {self.min_correspondences}")
+        check_limits(self)
 
     def lm(self) -> LMConfig:
         """The Levenberg-Marquardt settings of one round."""

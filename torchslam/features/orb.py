@@ -11,13 +11,14 @@ from __future__ import annotations
 import enum
 import logging
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float
+from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_limits
 
 __all__ = ["ORBConfig", "ORBScore", "Features", "extract_orb", "rgb_to_grey_u8", "DESCRIPTOR_BYTES"]
 
@@ -67,27 +68,20 @@ class ORBConfig:
     patch_size: int = 31
     fast_threshold: int = 20
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "n_features": AT_LEAST_1, "scale_factor": Limit(gt=1), "n_levels": AT_LEAST_1, "edge_threshold": NON_NEGATIVE,
+        "first_level": NON_NEGATIVE, "wta_k": Limit(ge=2, le=2), "patch_size": Limit(ge=2), "fast_threshold": Limit(ge=0, le=255),
+    }
+
     def __post_init__(self) -> None:
-        if self.n_features < 1:
-            raise ConfigError(f"n_features: must be >= 1, got {self.n_features}")
-        if not self.scale_factor > 1.0:
-            raise ConfigError(f"scale_factor: must be > 1, got {self.scale_factor}")
-        if self.n_levels < 1:
-            raise ConfigError(f"n_levels: must be >= 1, got {self.n_levels}")
-        if self.edge_threshold < 0 or self.patch_size < 2:
-            raise ConfigError(
-                f"edge_threshold/patch_size: need edge_threshold >= 0 and patch_size >= 2, "
-                f"got {self.edge_threshold}, {self.patch_size}"
-            )
-        if not 0 <= self.first_level < self.n_levels:
-            raise ConfigError(f"first_level: must be in [0, n_levels), got {self.first_level}")
         if self.wta_k != 2:
             # WTA_K > 2 changes the descriptor's meaning so that Hamming distance no longer applies.
             raise ConfigError(f"wta_k: only 2 (Hamming-comparable descriptors) is supported, got {self.wta_k}")
+        check_limits(self)
+        if not self.first_level < self.n_levels:
+            raise ConfigError(f"first_level: must be in [0, n_levels), got {self.first_level}")
         if not isinstance(self.score_type, ORBScore):
             raise ConfigError(f"score_type: expected one of {[s.value for s in ORBScore]}, got {self.score_type!r}")
-        if not 0 <= self.fast_threshold <= 255:
-            raise ConfigError(f"fast_threshold: must be in [0, 255], got {self.fast_threshold}")
 
 
 @dataclass(frozen=True)

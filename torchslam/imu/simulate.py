@@ -28,13 +28,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..errors import NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape
 from ..geometry import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw, so3_exp, so3_log, vex
 
 __all__ = [
@@ -108,18 +108,13 @@ class ImuNoise:
     gyro_bias_init: float = 5.0e-4
     accel_bias_init: float = 2.0e-2
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "gyro_noise_density": NON_NEGATIVE, "gyro_bias_walk": NON_NEGATIVE, "accel_noise_density": NON_NEGATIVE,
+        "accel_bias_walk": NON_NEGATIVE, "gyro_bias_init": NON_NEGATIVE, "accel_bias_init": NON_NEGATIVE,
+    }
+
     def __post_init__(self) -> None:
-        for key in (
-            "gyro_noise_density",
-            "gyro_bias_walk",
-            "accel_noise_density",
-            "accel_bias_walk",
-            "gyro_bias_init",
-            "accel_bias_init",
-        ):
-            value = getattr(self, key)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                raise ConfigError(f"ImuNoise.{key}: expected a finite number >= 0, got {value!r}")
+        check_limits(self)
 
     @classmethod
     def noiseless(cls) -> "ImuNoise":

@@ -41,13 +41,14 @@ from __future__ import annotations
 
 import enum
 import math
+from typing import ClassVar
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
@@ -169,26 +170,20 @@ class KCCConfig:
     soft_argmax: bool = False
     temperature: float = 0.02
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "sigma": POSITIVE, "lam": POSITIVE, "T_c": POSITIVE, "T_d": POSITIVE, "T_K": NON_NEGATIVE, "T_M": NON_NEGATIVE,
+        "ortho_height": AT_LEAST_1, "ortho_width": AT_LEAST_1, "coverage": Limit(gt=0, le=1), "sample_step": AT_LEAST_1,
+        "psr_window": Limit(ge=1, odd=True), "subpixel_smoothing": POSITIVE, "subpixel_iterations": AT_LEAST_1,
+        "fill_holes": Limit(ge=1, odd=True), "temperature": POSITIVE,
+    }
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "subpixel", _enum(Subpixel, self.subpixel, "subpixel"))
         object.__setattr__(self, "channel_norm", _enum(ChannelNorm, self.channel_norm, "channel_norm"))
         object.__setattr__(self, "depth_statistic", _enum(DepthStatistic, self.depth_statistic, "depth_statistic"))
-        for key in ("sigma", "lam", "T_c", "T_d", "subpixel_smoothing", "temperature"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
-                raise ConfigError(f"{key}: expected a positive number, got {value!r}")
+        check_limits(self)
         if not self.T_M > self.T_K:
             raise ConfigError(f"T_M: expected T_M > T_K (the paper's condition), got T_M={self.T_M}, T_K={self.T_K}")
-        for key in ("ortho_height", "ortho_width", "sample_step", "subpixel_iterations"):
-            value = getattr(self, key)
-            if not (isinstance(value, int) and value >= 1):
-                raise ConfigError(f"{key}: expected a positive integer, got {value!r}")
-        if not (0.0 < self.coverage <= 1.0):
-            raise ConfigError(f"coverage: expected a fraction in (0, 1], got {self.coverage!r}")
-        for key in ("psr_window", "fill_holes"):
-            value = getattr(self, key)
-            if not (isinstance(value, int) and value >= 1 and value % 2 == 1):
-                raise ConfigError(f"{key}: expected a positive odd integer, got {value!r}")
 
 
 # --------------------------------------------------------------------------------------------

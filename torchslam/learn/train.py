@@ -11,11 +11,11 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
-from ..errors import ConfigError
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_limits
 from ..fastgo import FastGOConfig, FastGOProblem, optimize_batch
 from ..slam.monitor import Monitor
 from ..slam.nislam import NISlamConfig
@@ -46,15 +46,11 @@ logger = logging.getLogger(__name__)
 KCC_KEYS = ("kcc.sigma", "kcc.lam", "kcc.temperature")
 
 
-def _check_training(cfg, int_keys: tuple[str, ...]) -> None:
-    """Checks shared by the training configs: disjoint, non-empty seed sets, positive ints and lr."""
+def _check_training(cfg) -> None:
+    """Checks shared by the training configs: declared limits, disjoint, non-empty seed sets."""
+    check_limits(cfg)
     if set(cfg.train_seeds) & set(cfg.val_seeds):
         raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(cfg.train_seeds) & set(cfg.val_seeds))}")
-    for key in int_keys:
-        if not (isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1):
-            raise ConfigError(f"{key}: expected a positive int, got {getattr(cfg, key)!r}")
-    if not (cfg.lr > 0):
-        raise ConfigError(f"lr: expected a positive learning rate, got {cfg.lr!r}")
     if not cfg.train_seeds or not cfg.val_seeds:
         raise ConfigError("train_seeds, val_seeds: expected at least one seed each")
 
@@ -101,11 +97,18 @@ class KCCTrainConfig:
     tum: str | None = None
     tum_frames: int = 60
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "train_seeds": Limit(), "val_seeds": Limit(), "frames": AT_LEAST_1, "keyframe_step": AT_LEAST_1,
+        "gaps": AT_LEAST_1, "width": AT_LEAST_1, "height": AT_LEAST_1, "ortho_height": AT_LEAST_1, "ortho_width": AT_LEAST_1,
+        "steps": AT_LEAST_1, "lr": POSITIVE, "batch_size": NON_NEGATIVE, "seed": Limit(), "eval_every": AT_LEAST_1,
+        "tum_frames": AT_LEAST_1,
+    }
+
     def __post_init__(self) -> None:
         unknown = [k for k in self.names if k not in KCC_KEYS]
         if unknown or not self.names:
             raise ConfigError(f"names: the KCC objective learns some of {list(KCC_KEYS)}, got {list(self.names)}")
-        _check_training(self, ("steps", "eval_every", "frames", "width", "height", "ortho_height", "ortho_width"))
+        _check_training(self)
 
 
 @dataclass
@@ -272,8 +275,15 @@ class PairNetTrainConfig:
     eval_every: int = 10
     eval_iterations: int = 30
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "train_seeds": Limit(), "val_seeds": Limit(), "num_keyframes": Limit(ge=2), "lap_length": AT_LEAST_1,
+        "num_false": NON_NEGATIVE, "noise": NON_NEGATIVE, "unroll": AT_LEAST_1, "steps": AT_LEAST_1, "lr": POSITIVE,
+        "hidden": AT_LEAST_1, "batch_size": NON_NEGATIVE, "seed": Limit(), "eval_every": AT_LEAST_1,
+        "eval_iterations": AT_LEAST_1,
+    }
+
     def __post_init__(self) -> None:
-        _check_training(self, ("steps", "eval_every", "unroll", "eval_iterations"))
+        _check_training(self)
 
 
 def _graphs(cfg: PairNetTrainConfig, seeds) -> list[FalseLoopProblem]:

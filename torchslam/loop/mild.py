@@ -40,11 +40,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, DTypeError, TorchSlamError, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, TorchSlamError, check_limits, check_shape
 from ..features.matching import hamming_distance_indexed, pack_descriptors
 
 __all__ = ["MILDConfig", "MILDDatabase", "MILDError", "substring_keys"]
@@ -83,21 +84,17 @@ class MILDConfig:
     exclude_recent: int = 1
     min_score: float = 0.0
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "tables": AT_LEAST_1, "bits": Limit(ge=8, le=32), "max_distance": Limit(ge=0, le=256), "sigma": POSITIVE,
+        "top_k": AT_LEAST_1, "exclude_recent": NON_NEGATIVE, "min_score": NON_NEGATIVE,
+    }
+
     def __post_init__(self) -> None:
+        check_limits(self)
         if self.tables < 1 or self.bits < 8 or self.bits % 8 or self.tables * self.bits != _DESCRIPTOR_BITS:
             raise ConfigError(
                 f"tables/bits: need tables * bits == 256 with bits a multiple of 8, got {self.tables} x {self.bits}"
             )
-        if self.bits > 32:
-            raise ConfigError(f"bits: at most 32 bits per substring are supported, got {self.bits}")
-        if not 0 <= self.max_distance <= _DESCRIPTOR_BITS:
-            raise ConfigError(f"max_distance: must be in [0, 256], got {self.max_distance}")
-        if not self.sigma > 0:
-            raise ConfigError(f"sigma: must be > 0, got {self.sigma}")
-        if self.top_k < 1:
-            raise ConfigError(f"top_k: must be >= 1, got {self.top_k}")
-        if self.exclude_recent < 0:
-            raise ConfigError(f"exclude_recent: must be >= 0, got {self.exclude_recent}")
 
 
 def substring_keys(descriptors: Tensor, tables: int = 16) -> Tensor:

@@ -23,11 +23,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, check_limits, check_shape
 from ..geometry import se3_exp
 from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, SolverMethod, analyze, solve_block_sparse
 
@@ -51,6 +52,7 @@ class LMConfig:
         tol: stop when a step lowers (or the quadratic model predicts it to lower) the cost by at
             most ``tol * cost``.
         step_tol: stop when an accepted step moves no pose by more than this (metres/radians).
+            A negative ``tol`` or ``step_tol`` turns that test off (all ``iterations`` run).
         damping: initial Marquardt factor ``lambda`` (``H + lambda diag(H)``); 0 starts as pure
             Gauss-Newton.
         damping_up: factor applied to ``lambda`` after a rejected step (at least ``1e-6``).
@@ -87,9 +89,14 @@ class LMConfig:
     newton: bool = True
     newton_switch: float = 0.5
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "iterations": NON_NEGATIVE, "tol": Limit(), "step_tol": Limit(), "damping": NON_NEGATIVE,
+        "damping_up": Limit(gt=1), "damping_down": Limit(gt=0, lt=1), "damping_max": Limit(gt=0, allow_inf=True),
+        "leaf_size": AT_LEAST_1, "max_step_scale": Limit(ge=1), "newton_switch": Limit(ge=0, le=1),
+    }
+
     def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ConfigError(f"iterations: expected >= 0, got {self.iterations}")
+        check_limits(self)
         if self.damping < 0 or self.damping_up <= 1 or not 0 < self.damping_down < 1:
             raise ConfigError(
                 f"damping: expected damping >= 0, damping_up > 1, 0 < damping_down < 1, got "

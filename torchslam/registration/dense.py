@@ -71,15 +71,15 @@ from __future__ import annotations
 import enum
 import functools
 import logging
-import math
 from dataclasses import dataclass, fields, replace
+from typing import ClassVar
 
 import kornia
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape, parse_choice
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..geometry import (
     PinholeCamera,
@@ -198,36 +198,25 @@ class DenseConfig:
     tol: float = 1e-4
     finest_pixel_step: int = 2
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "width": AT_LEAST_1, "height": AT_LEAST_1, "levels": AT_LEAST_1, "iterations": NON_NEGATIVE,
+        "geometric_weight": NON_NEGATIVE, "geometric_depth_power": NON_NEGATIVE, "student_t_dof": POSITIVE,
+        "huber_k": POSITIVE, "sigma_floor_photometric": POSITIVE, "sigma_floor_geometric": POSITIVE,
+        "min_depth": POSITIVE, "max_depth": POSITIVE, "depth_merge_tolerance": POSITIVE, "depth_edge_tolerance": POSITIVE,
+        "max_correspondences": AT_LEAST_1, "correspondence_threshold": POSITIVE, "min_correspondences": NON_NEGATIVE,
+        "tol": NON_NEGATIVE, "finest_pixel_step": AT_LEAST_1,
+    }
+
     def __post_init__(self) -> None:
-        for name in ("width", "height", "levels", "max_correspondences", "finest_pixel_step"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"{name}: expected a positive int, got {v!r}")
-        v = self.min_correspondences
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ConfigError(f"min_correspondences: expected a non-negative int, got {v!r}")
-        try:
-            its = tuple(self.iterations)
-        except TypeError:
-            raise ConfigError(f"iterations: expected a sequence of ints, got {self.iterations!r}") from None
-        if len(its) != self.levels or any(isinstance(n, bool) or not isinstance(n, int) or n < 0 for n in its):
+        check_limits(self)
+        its = tuple(self.iterations)
+        if len(its) != self.levels:
             raise ConfigError(
                 f"iterations: expected {self.levels} non-negative ints (one per level, coarse to fine), got {self.iterations!r}"
             )
         object.__setattr__(self, "iterations", its)
         DenseRobust.parse(self.robust)
-        for name in (
-            "student_t_dof", "huber_k", "sigma_floor_photometric", "sigma_floor_geometric", "min_depth",
-            "depth_merge_tolerance", "depth_edge_tolerance", "correspondence_threshold",
-        ):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ConfigError(f"{name}: expected a positive finite number, got {v!r}")
-        for name in ("geometric_weight", "geometric_depth_power", "tol"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ConfigError(f"{name}: expected a non-negative finite number, got {v!r}")
-        if not (isinstance(self.max_depth, (int, float)) and self.max_depth > self.min_depth):
+        if not self.max_depth > self.min_depth:
             raise ConfigError(f"max_depth: expected a number above min_depth={self.min_depth}, got {self.max_depth!r}")
 
 

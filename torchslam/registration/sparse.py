@@ -38,13 +38,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
-import numpy as np
 import torch
 from torch import Tensor
 from torch.nn.utils.rnn import pad_sequence
 
-from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape, parse_choice
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..features import (
     MatchBackend,
@@ -127,28 +127,17 @@ class SparseConfig:
     seed: int = 0
     match_backend: MatchBackend | str = MatchBackend.AUTO
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "max_distance": Limit(ge=0, le=256), "isometry_rounds": NON_NEGATIVE, "isometry_partners": AT_LEAST_1,
+        "isometry_tol": POSITIVE, "ransac_iterations": AT_LEAST_1, "ransac_sample": Limit(ge=3),
+        "inlier_threshold": POSITIVE, "min_inliers": NON_NEGATIVE, "refine_iterations": NON_NEGATIVE,
+        "huber_delta": POSITIVE, "min_depth": POSITIVE, "max_depth": POSITIVE, "seed": Limit(),
+    }
+
     def __post_init__(self) -> None:
-        def is_int(v) -> bool:
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-
-        def is_pos(v) -> bool:
-            return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and np.isfinite(v) and v > 0
-
-        minimum = {
-            "max_distance": 0, "isometry_rounds": 0, "isometry_partners": 1, "ransac_iterations": 1,
-            "ransac_sample": 3, "min_inliers": 0, "refine_iterations": 0,
-        }
-        for key, low in minimum.items():
-            v = getattr(self, key)
-            if not is_int(v) or v < low:
-                raise ConfigError(f"SparseConfig.{key}: expected an integer >= {low}, got {v!r}")
-        for key in ("isometry_tol", "inlier_threshold", "huber_delta", "min_depth", "max_depth"):
-            if not is_pos(getattr(self, key)):
-                raise ConfigError(f"SparseConfig.{key}: expected a finite number > 0, got {getattr(self, key)!r}")
+        check_limits(self)
         if not self.max_depth > self.min_depth:
             raise ConfigError(f"SparseConfig.max_depth: expected > min_depth={self.min_depth}, got {self.max_depth}")
-        if not is_int(self.seed):
-            raise ConfigError(f"SparseConfig.seed: expected an integer, got {self.seed!r}")
         object.__setattr__(self, "match_backend", parse_choice(MatchBackend, self.match_backend, "SparseConfig.match_backend"))
 
 

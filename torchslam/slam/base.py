@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ..data.frame import Frame, Sequence
 from ..errors import ConfigError
+from .memory import check_run_memory
 
 __all__ = [
     "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "empty_output", "frame_poses",
@@ -141,7 +142,12 @@ def run_sequence(
         max_frames: stop after this many frames.
         on_frame: called with the number of frames processed so far after each frame, outside
             the compute timer (monitoring: e.g. the ATE so far every n frames).
+
+    Raises:
+        InsufficientMemoryError: before the first frame is read, when the configuration's
+            estimated memory exceeds the device's (``slam.memory``).
     """
+    check_run_memory(system, [getattr(sequence, "camera", None)])
     frames: Iterable[Frame] = iter(sequence)
     if progress is not None:
         frames = progress(frames)

@@ -58,9 +58,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from ..config import config_to_dict
+from ..config import config_to_dict, load_yaml
 from ..data.frame import Sequence
 from ..data.synthetic import SYNTHETIC_TRAJECTORIES, SyntheticConfig, generate_sequence
 from ..data.trajectory import read_tum_trajectory, write_tum_trajectory
@@ -525,8 +523,8 @@ def _run_state(
         why = f"max_frames {metrics.get('max_frames')}, not {max_frames}"
     elif config is not None:
         try:
-            saved = yaml.safe_load((folder / "config.yaml").read_text())
-        except (OSError, yaml.YAMLError) as exc:
+            saved = load_yaml((folder / "config.yaml").read_text(), str(folder / "config.yaml"))
+        except (OSError, ConfigError) as exc:
             return None, f"config.yaml unreadable ({exc.__class__.__name__})", False
         if _without_device(saved) != _without_device(dict(config)):
             keys = _differing_keys(_without_device(saved), _without_device(dict(config)))

@@ -42,14 +42,14 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
-from ..errors import ConfigError, ShapeError, TorchSlamError
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, TorchSlamError, check_limits
 from ..fastgo import (
     FastGOConfig,
     FastGOProblem,
@@ -149,23 +149,18 @@ class GCSlamConfig:
     map_voxel: float = 0.01
     max_depth: float = 5.0
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
+        "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
+        "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
+        "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
+        "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
+    }
+
     def __post_init__(self) -> None:
         if self.frontend not in FRONTENDS:
             raise ConfigError(f"frontend: {self.frontend!r} is not one of {list(FRONTENDS)}")
-        if not self.keyframe_displacement > 0:
-            raise ConfigError(f"keyframe_displacement: expected > 0, got {self.keyframe_displacement}")
-        for name in ("keyframe_sample_stride", "map_stride"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name}: expected >= 1, got {getattr(self, name)}")
-        for name in ("fastgo_iterations", "loop_iterations"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name}: expected >= 1, got {getattr(self, name)}")
-        if self.final_iterations < 0 or self.max_lost < 0 or self.relocalize_keyframes < 0:
-            raise ConfigError("final_iterations, max_lost and relocalize_keyframes must be >= 0")
-        if not self.loop_threshold >= 0:
-            raise ConfigError(f"loop_threshold: expected >= 0, got {self.loop_threshold}")
-        if not self.loop_slack_m >= 0:
-            raise ConfigError(f"loop_slack_m: expected >= 0 metres, got {self.loop_slack_m}")
+        check_limits(self)
 
     def orb(self) -> ORBConfig:
         return ORBConfig(n_features=self.orb_features, scale_factor=self.orb_scale, n_levels=self.orb_levels)

@@ -32,6 +32,7 @@ from ..errors import ConfigError
 from . import gcslam as _gcslam
 from .base import RunResult, SystemOutput, empty_output
 from .gcslam import GCSlam, GCSlamConfig
+from .memory import check_run_memory
 from .monitor import Monitor
 from .nislam import NISlam, NISlamConfig, track_frames
 
@@ -89,7 +90,8 @@ def run_lockstep(
         Per sequence, in order, its ``RunResult`` or the exception that stopped it.
 
     Raises:
-        ConfigError: an argument is not what it should be (named in the message).
+        ConfigError: an argument is not what it should be (named in the message), or the
+            configuration needs more memory than the device has (``slam.memory``).
     """
     if not isinstance(system_cfg, (NISlamConfig, GCSlamConfig)):
         raise ConfigError(f"system_cfg: expected an NISlamConfig or GCSlamConfig, got {type(system_cfg).__name__}")
@@ -112,6 +114,9 @@ def run_lockstep(
     else:
         systems = [NISlam(system_cfg, device=device, monitor=m) for m in monitors]
         step = track_frames
+    # Every NI-SLAM sequence keeps its keyframe images at once; GC-SLAM tracks one frame at a time.
+    batch = 1 if isinstance(system_cfg, GCSlamConfig) else n
+    check_run_memory(systems[0], [getattr(s, "camera", None) for s in sequences], batch=batch)
     failed: list[BaseException | None] = [None] * n
     outputs: list[SystemOutput | None] = [None] * n
     frames_in: list[Iterator[Frame] | None] = [None] * n

@@ -41,7 +41,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -49,7 +49,7 @@ from torch import Tensor
 from ..backend import edge_residuals, optimize_pose_graph
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
-from ..errors import ConfigError, ShapeError
+from ..errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_limits
 from ..features import ORBConfig, extract_orb
 from ..geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
 from ..imu import ImuNoise
@@ -117,6 +117,15 @@ class LoopConfig:
     rotation_sigma_deg: float = 0.5
     min_translation_sigma_m: float = 0.002
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
+        "min_psr": NON_NEGATIVE, "min_matched": FRACTION, "max_rotation_deg": Limit(ge=0, le=180),
+        "max_odometry_bend_m": POSITIVE, "rotation_sigma_deg": POSITIVE, "min_translation_sigma_m": POSITIVE,
+    }
+
+    def __post_init__(self) -> None:
+        check_limits(self)
+
 
 @dataclass(frozen=True)
 class NISlamConfig:
@@ -145,7 +154,8 @@ class NISlamConfig:
         min_valid_points: frames with fewer valid depth points are not tracked.
         max_jump_m: a frame whose position departs from the constant-velocity prediction by
             more than this is treated like a PSR collapse (beyond the paper: a false
-            correlation peak can score just above T_K while the true peak fades).
+            correlation peak can score just above T_K while the true peak fades); ``inf``
+            turns the test off.
         lost_uses_prior: a frame that is lost (PSR < T_K or no depth match) even against the
             fresh keyframe made from the last well-tracked frame takes the constant-velocity
             prediction as its position instead of its own correlation estimate, and starts the
@@ -171,6 +181,8 @@ class NISlamConfig:
         map_voxel: voxel size of ``map.ply``, metres.
         monitor_images_every: log the orthographic image of every n-th keyframe and the
             correlation response of the first frame matched against it (TensorBoard).
+
+    Every numeric field has a declared ``Limit`` (``LIMITS``); NaN is refused everywhere.
     """
 
     attitude: str = "auto"
@@ -191,13 +203,19 @@ class NISlamConfig:
     map_voxel: float = 0.01
     monitor_images_every: int = 10
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "sim_gyro_noise": NON_NEGATIVE, "sim_bias_walk": NON_NEGATIVE, "sim_seed": Limit(),
+        "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "pixel_stride": AT_LEAST_1,
+        "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True), "map_voxel": POSITIVE,
+        "monitor_images_every": NON_NEGATIVE,
+    }
+
     def __post_init__(self) -> None:
+        check_limits(self)
         if self.attitude not in ATTITUDE_CHOICES:
             raise ConfigError(f"attitude: {self.attitude!r} is not one of {list(ATTITUDE_CHOICES)}")
         if self.gravity not in GRAVITY_CHOICES:
             raise ConfigError(f"gravity: {self.gravity!r} is not one of {list(GRAVITY_CHOICES)}")
-        if self.pixel_stride < 1:
-            raise ConfigError(f"pixel_stride: expected >= 1, got {self.pixel_stride}")
 
 
 @dataclass(frozen=True)

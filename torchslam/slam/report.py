@@ -139,16 +139,14 @@ def find_groundtruth(run_dir: str | os.PathLike, metrics: Mapping[str, Any]) -> 
 
 
 def _synthetic_groundtruth(run_dir: Path) -> Trajectory | None:
-    import yaml
-
-    from ..config import config_from_dict
+    from ..config import config_from_dict, load_yaml
     from ..data.synthetic import SyntheticConfig, synthetic_trajectory
     from ..geometry import se3_from_Rt
 
     try:
-        cfg_doc = yaml.safe_load((run_dir / "config.yaml").read_text())
+        cfg_doc = load_yaml((run_dir / "config.yaml").read_text(), str(run_dir / "config.yaml"))
         cfg = config_from_dict(SyntheticConfig, cfg_doc["data"]["synthetic"])
-    except (OSError, yaml.YAMLError, KeyError, TypeError, TorchSlamError) as exc:
+    except (OSError, KeyError, TypeError, TorchSlamError) as exc:
         logger.warning("%s: cannot rebuild the synthetic ground truth (%s)", run_dir, exc)
         return None
     t = torch.arange(cfg.frames, dtype=torch.float64) / cfg.fps

@@ -8,15 +8,13 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
-import yaml
-
-from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides
+from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
-from ..errors import ConfigError
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits
 from .base import check_max_frames, run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -50,6 +48,13 @@ class DataConfig:
     max_gap: float = 0.02
     prefetch: int = 2
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "stride": AT_LEAST_1, "start": NON_NEGATIVE, "end": NON_NEGATIVE, "max_gap": POSITIVE, "prefetch": NON_NEGATIVE,
+    }
+
+    def __post_init__(self) -> None:
+        check_limits(self)
 
 
 @dataclass(frozen=True)
@@ -96,17 +101,7 @@ def resolve_config(
     layers: list[tuple[str, dict[str, Any]]] = []
     if config_path is not None:
         path = config_file(config_path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config ({exc.strerror or exc})") from exc
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            loc = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
-            raise ConfigError(f"{path}{loc}: malformed YAML ({getattr(exc, 'problem', exc)})") from exc
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level, got {type(loaded).__name__}")
-        layers.append((str(path), dict(loaded or {})))
+        layers.append((str(path), read_yaml_mapping(path)))
     if params is not None:
         from ..learn.params import (
             checkpoint_values,  # lazy: torch.load and the learn package
