@@ -31,9 +31,9 @@ import torch
 from torchslam.data.frame import Frame
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.environment import environment_info
-from torchslam.slam import run_sequence
-from torchslam.slam.lockstep import default_max_batch, run_lockstep
-from torchslam.slam.nislam import NISlam, NISlamConfig
+from torchslam.systems import run_sequence
+from torchslam.systems.lockstep import default_max_batch, run_lockstep
+from torchslam.systems.nislam import NISlam, NISlamConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 POOL = [(t, s) for s in (0, 1) for t in ("orbit", "translate", "loop", "handheld")]

@@ -23,9 +23,9 @@ from torchslam.data.tum import TUMSequence
 from torchslam.environment import environment_info
 from torchslam.eval import ate
 from torchslam.kcc import choose_resolution, kcc_features, kcc_train, keyframe_map, orthographic_project, rgbd_to_points
-from torchslam.slam import run_sequence
-from torchslam.slam.nislam import NISlam, NISlamConfig, attitude_stream, track_step
-from torchslam.slam.time_offset import estimate_attitude_time_offset
+from torchslam.systems import run_sequence
+from torchslam.systems.nislam import NISlam, NISlamConfig, attitude_stream, track_step
+from torchslam.app.calibrate_time import estimate_attitude_time_offset
 
 PAPER_ATE_M = {"tum_fr1_xyz": 0.011}  # NI-SLAM Table 1 (ground-truth attitude on TUM)
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -45,8 +45,8 @@ def _cases(data_root: Path) -> list[tuple[str, str, str, list[str]]]:
 
 
 def _run_case(system: str, data: str, overrides: list[str]) -> dict[str, torch.Tensor]:
-    from torchslam.slam import get_system, run_sequence
-    from torchslam.slam.run import load_sequence, resolve_config
+    from torchslam.systems import get_system, run_sequence
+    from torchslam.app.run import load_sequence, resolve_config
 
     spec = get_system(system)
     cfg, data_cfg, _ = resolve_config(system, None, overrides)

@@ -20,7 +20,7 @@ import os
 from pathlib import Path
 
 from torchslam.environment import environment_info
-from torchslam.slam.run import RunOptions, run
+from torchslam.app.run import RunOptions, run
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parent.parent

@@ -31,7 +31,7 @@ import torch
 from torchslam.config import config_to_dict
 from torchslam.errors import TorchSlamError
 from torchslam.learn import KCCTrainConfig, PairNetTrainConfig, save_checkpoint, train_kcc, train_pairnet
-from torchslam.slam.monitor import TensorBoardMonitor
+from torchslam.systems.monitor import TensorBoardMonitor
 
 
 def _seeds(text: str) -> tuple[int, ...]:

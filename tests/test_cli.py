@@ -113,8 +113,8 @@ def _set_examples(text: str) -> list[str]:
 
 def _resolves_for_some_system(example: str) -> bool:
     from torchslam.errors import ConfigError
-    from torchslam.slam.registry import available_systems
-    from torchslam.slam.run import resolve_config
+    from torchslam.systems.registry import available_systems
+    from torchslam.app.run import resolve_config
 
     for system in available_systems():
         try:

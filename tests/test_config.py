@@ -87,7 +87,7 @@ def _missing_keys(defaults: dict, stated: dict, prefix: str = "") -> list[str]:
 @pytest.mark.parametrize("system", ["nislam", "gcslam"])
 def test_each_system_yaml_states_every_default(system):
     """configs/<system>.yaml is the documentation of the defaults: complete and equal to the code."""
-    from torchslam.slam.registry import get_system
+    from torchslam.systems.registry import get_system
 
     cls = get_system(system).config_cls
     path = REPO_ROOT / "configs" / f"{system}.yaml"
@@ -97,7 +97,7 @@ def test_each_system_yaml_states_every_default(system):
 
 def test_nislam_fast_preset_changes_only_the_pixel_stride():
     from torchslam.config import config_to_dict
-    from torchslam.slam.nislam import NISlamConfig
+    from torchslam.systems.nislam import NISlamConfig
 
     fast = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_fast.yaml")
     assert fast.pixel_stride == 2
@@ -107,7 +107,7 @@ def test_nislam_fast_preset_changes_only_the_pixel_stride():
 
 def test_nislam_faster_preset_changes_only_stride_and_orthographic_size():
     from torchslam.config import config_to_dict
-    from torchslam.slam.nislam import NISlamConfig
+    from torchslam.systems.nislam import NISlamConfig
 
     fast = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_faster.yaml")
     assert (fast.pixel_stride, fast.kcc.ortho_height, fast.kcc.ortho_width) == (2, 240, 320)

@@ -5,6 +5,7 @@ import dataclasses
 import importlib
 import math
 import pkgutil
+import warnings
 
 import pytest
 
@@ -12,16 +13,19 @@ import torchslam
 from torchslam.cli import main
 from torchslam.config import config_from_dict, load_config, load_yaml, parse_overrides
 from torchslam.errors import ConfigError, Limit, check_limits, numeric_fields
-from torchslam.slam.nislam import NISlamConfig
-from torchslam.slam.run import resolve_config
+from torchslam.systems.nislam import NISlamConfig
+from torchslam.app.run import resolve_config
 
 
 def _config_classes() -> list[type]:
     """Every dataclass in torchslam named ``*Config`` and every dataclass nested in one, plus ImuNoise."""
     found: dict[str, type] = {}
-    for mod in pkgutil.walk_packages(torchslam.__path__, "torchslam."):
-        if mod.name == "torchslam.__main__":
-            continue
+    with warnings.catch_warnings():  # walk_packages imports the old torchslam.slam package too
+        warnings.simplefilter("ignore", FutureWarning)
+        modules = list(pkgutil.walk_packages(torchslam.__path__, "torchslam."))
+    for mod in modules:
+        if mod.name == "torchslam.__main__" or mod.name.startswith("torchslam.slam"):
+            continue  # the entry point, and the old paths that only alias new ones
         module = importlib.import_module(mod.name)
         for obj in vars(module).values():
             if isinstance(obj, type) and dataclasses.is_dataclass(obj) and obj.__module__ == module.__name__:

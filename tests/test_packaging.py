@@ -10,7 +10,7 @@ import pytest
 from torchslam.cli import main
 from torchslam.config import config_file, load_config, preset_names
 from torchslam.errors import ConfigError
-from torchslam.slam.nislam import NISlamConfig
+from torchslam.systems.nislam import NISlamConfig
 
 from .conftest import REPO_ROOT
 

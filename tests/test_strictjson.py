@@ -34,7 +34,7 @@ def test_non_finite_values_become_null_with_the_reason():
 
 def test_calibrate_time_json_is_strict(monkeypatch, capsys):
     from torchslam import cli
-    from torchslam.slam import time_offset
+    from torchslam.app import calibrate_time as time_offset
 
     class Estimate:
         def to_dict(self):

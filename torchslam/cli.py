@@ -32,7 +32,7 @@ def _config_help() -> str:
 
 
 def _add_run(sub) -> None:
-    from .slam.registry import KNOWN_SYSTEMS
+    from .systems.registry import KNOWN_SYSTEMS
 
     p = sub.add_parser(
         "run", help="run a SLAM system on a sequence and write a run folder",
@@ -61,10 +61,10 @@ def _add_run(sub) -> None:
 
 
 def _cmd_run(args) -> int:
-    from .slam.registry import get_system
+    from .systems.registry import get_system
 
     get_system(args.system)  # fail fast, before any data is touched
-    from .slam.run import RunOptions, default_out_dir, run
+    from .app.run import RunOptions, default_out_dir, run
 
     if args.device == "cuda":
         import torch
@@ -84,7 +84,7 @@ def _cmd_run(args) -> int:
         def progress(frames):
             return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False)
 
-    from .slam.runfolder import OutputWriteError
+    from .app.runfolder import OutputWriteError
 
     try:
         metrics = run(options, config_path=args.config, overrides=args.overrides, progress=progress)
@@ -123,7 +123,7 @@ def _run_line(system: str, metrics: dict) -> str:
 
 
 def _add_batch(sub) -> None:
-    from .slam.registry import KNOWN_SYSTEMS
+    from .systems.registry import KNOWN_SYSTEMS
 
     p = sub.add_parser(
         "batch",
@@ -153,8 +153,8 @@ def _add_batch(sub) -> None:
 def _cmd_batch(args) -> int:
     import os
 
-    from .slam.batch import BatchOptions, format_table, run_batch
-    from .slam.registry import get_system
+    from .app.batch import BatchOptions, format_table, run_batch
+    from .systems.registry import get_system
 
     get_system(args.system)  # fail fast, before any data is touched
     options = BatchOptions(
@@ -188,7 +188,7 @@ def _add_report(sub) -> None:
 
 
 def _cmd_report(args) -> int:
-    from .slam.report import write_report
+    from .app.report import write_report
 
     path = write_report(args.dir)
     print(f"report: {path}")
@@ -306,9 +306,9 @@ def _add_calibrate_time(sub) -> None:
 
 def _cmd_calibrate_time(args) -> int:
     from .config import config_from_dict
-    from .slam.nislam import NISlamConfig, attitude_stream
-    from .slam.run import DataConfig, load_sequence
-    from .slam.time_offset import estimate_attitude_time_offset
+    from .systems.nislam import NISlamConfig, attitude_stream
+    from .app.run import DataConfig, load_sequence
+    from .app.calibrate_time import estimate_attitude_time_offset
 
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")

@@ -12,8 +12,8 @@ import torch
 
 from torchslam.errors import ConfigError, DataFormatError
 from torchslam.learn import PairWeightNet, checkpoint_values, learnable, load_checkpoint, save_checkpoint
-from torchslam.slam.gcslam import GCSlamConfig
-from torchslam.slam.nislam import NISlamConfig
+from torchslam.systems.gcslam import GCSlamConfig
+from torchslam.systems.nislam import NISlamConfig
 
 KEYS = ["kcc.sigma", "kcc.lam", "kcc.temperature"]
 

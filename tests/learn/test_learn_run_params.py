@@ -15,8 +15,8 @@ from torchslam.cli import main
 from torchslam.config import config_from_dict
 from torchslam.errors import ConfigError
 from torchslam.learn import PairWeightNet, learnable, load_checkpoint, save_checkpoint
-from torchslam.slam.nislam import NISlamConfig
-from torchslam.slam.run import resolve_config
+from torchslam.systems.nislam import NISlamConfig
+from torchslam.app.run import resolve_config
 
 from ..conftest import REPO_ROOT
 

@@ -12,8 +12,8 @@ import yaml
 from torchslam.cli import main
 from torchslam.data import read_tum_trajectory
 from torchslam.data.synthetic import SyntheticConfig
-from torchslam.slam import batch as batch_mod
-from torchslam.slam.batch import (
+from torchslam.app.batch import runner as batch_mod
+from torchslam.app.batch import (
     SUMMARY_COLUMNS,
     TIMING_COLUMNS,
     TOTAL_TIMING_KEYS,
@@ -25,7 +25,7 @@ from torchslam.slam.batch import (
     run_group,
     select_engine,
 )
-from torchslam.slam.run import DataConfig
+from torchslam.app.run import DataConfig
 
 from ..conftest import REPO_ROOT
 from ._sequences import EditedSequence, interrupt_at

@@ -14,9 +14,9 @@ from torchslam.eval import ate
 from torchslam.fastgo import PairStats
 from torchslam.fastgo.synthetic import make_correspondences
 from torchslam.geometry import se3_exp, se3_inverse
-from torchslam.slam import run_sequence
-from torchslam.slam import gcslam as gc
-from torchslam.slam.gcslam import GCSlam, GCSlamConfig
+from torchslam.systems import run_sequence
+from torchslam.systems.gcslam import system as gc
+from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 
 from ..conftest import REPO_ROOT
 
@@ -177,7 +177,7 @@ def test_frames_without_depth_and_unrelated_frames_do_not_crash():
 
 def test_lost_frames_are_counted_apart_from_tracked_ones(tmp_path):
     from torchslam.cli import _run_line
-    from torchslam.slam.outputs import write_run
+    from torchslam.app.outputs import write_run
 
     from ._sequences import EditedSequence
 

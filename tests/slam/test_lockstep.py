@@ -9,9 +9,9 @@ from torchslam.config import config_from_dict
 from torchslam.data import Frame
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError, ShapeError
-from torchslam.slam import RunResult, run_sequence
-from torchslam.slam.lockstep import default_max_batch, run_lockstep
-from torchslam.slam.nislam import NISlam, NISlamConfig, track_frames
+from torchslam.systems import RunResult, run_sequence
+from torchslam.systems.lockstep import default_max_batch, run_lockstep
+from torchslam.systems.nislam import NISlam, NISlamConfig, track_frames
 
 from ._sequences import EditedSequence, interrupt_at
 
@@ -137,8 +137,8 @@ def test_max_frames_and_default_batch():
 
 def test_gcslam_lockstep_equals_per_sequence_runs_with_joint_fastgo(monkeypatch):
     """GC-SLAM in lockstep: one FastGO call for all sequences' new keyframes, same results."""
-    import torchslam.slam.gcslam as gc
-    from torchslam.slam.gcslam import GCSlam, GCSlamConfig
+    import torchslam.systems.gcslam.system as gc
+    from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 
     seqs = [
         generate_sequence(SyntheticConfig(frames=n, width=320, height=240, trajectory=kind, seed=seed))

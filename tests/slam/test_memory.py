@@ -9,10 +9,10 @@ from torchslam.cli import main
 from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.geometry import PinholeCamera
-from torchslam.slam.base import run_sequence
-from torchslam.slam.gcslam import GCSlam, GCSlamConfig
-from torchslam.slam.lockstep import run_lockstep
-from torchslam.slam.memory import (
+from torchslam.systems.base import run_sequence
+from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+from torchslam.systems.lockstep import run_lockstep
+from torchslam.systems.memory import (
     BYTES_PER_IMAGE_PIXEL,
     DENSE_BYTES_PER_WORKING_PIXEL,
     NISLAM_BYTES_PER_ORTHO_PIXEL,
@@ -21,7 +21,7 @@ from torchslam.slam.memory import (
     device_memory,
     estimate_memory,
 )
-from torchslam.slam.nislam import NISlam, NISlamConfig
+from torchslam.systems.nislam import NISlam, NISlamConfig
 
 CAM = PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480)
 HUGE = {"kcc": {"ortho_height": 100000, "ortho_width": 100000}}

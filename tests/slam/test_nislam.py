@@ -12,8 +12,8 @@ from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError
 from torchslam.eval import ate
-from torchslam.slam import run_sequence
-from torchslam.slam.nislam import LoopConfig, NISlam, NISlamConfig
+from torchslam.systems import run_sequence
+from torchslam.systems.nislam import LoopConfig, NISlam, NISlamConfig
 
 from ..conftest import REPO_ROOT
 from ._sequences import EditedSequence
@@ -151,7 +151,7 @@ def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
 
 
 def test_frames_on_the_motion_prior_are_not_counted_as_tracked(tmp_path):
-    from torchslam.slam.outputs import write_run
+    from torchslam.app.outputs import write_run
 
     seq = generate_sequence(SyntheticConfig(frames=16, trajectory="translate", **SMALL))
     other = generate_sequence(SyntheticConfig(frames=1, trajectory="orbit", seed=7, **SMALL))[0]

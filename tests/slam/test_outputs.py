@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from torchslam.slam.outputs import voxel_downsample
+from torchslam.systems.framelog import voxel_downsample
 
 
 def _reference(points, colors, voxel):
@@ -42,8 +42,8 @@ def test_voxel_downsample_equals_rowwise_unique_reference():
 
 def _written_run(out, seq, T_wc, frames, system="nislam"):
     """Write a run folder for the poses ``T_wc`` of sequence frames ``frames`` (no SLAM involved)."""
-    from torchslam.slam.base import RunResult, SystemOutput
-    from torchslam.slam.outputs import write_run
+    from torchslam.systems.base import RunResult, SystemOutput
+    from torchslam.app.outputs import write_run
 
     idx = torch.as_tensor(frames, dtype=torch.int64)
     o = SystemOutput(
@@ -124,10 +124,10 @@ def test_map_is_in_colour_and_in_the_trajectory_world_frame(tmp_path, system):
     from torchslam.data import read_tum_trajectory
     from torchslam.data.synthetic import SyntheticConfig, generate_sequence
     from torchslam.geometry import backproject_depth
-    from torchslam.slam import run_sequence
-    from torchslam.slam.gcslam import GCSlam, GCSlamConfig
-    from torchslam.slam.nislam import NISlam, NISlamConfig
-    from torchslam.slam.outputs import write_run
+    from torchslam.systems import run_sequence
+    from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+    from torchslam.systems.nislam import NISlam, NISlamConfig
+    from torchslam.app.outputs import write_run
 
     seq = generate_sequence(SyntheticConfig(frames=12, width=160, height=120, trajectory="translate", depth_noise=False))
     build = NISlam(NISlamConfig(attitude="groundtruth")) if system == "nislam" else GCSlam(GCSlamConfig(threaded=False, map_stride=1))

@@ -4,10 +4,10 @@ import pytest
 import torch
 
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
-from torchslam.slam import run_sequence
-from torchslam.slam.gcslam import GCSlam, GCSlamConfig
-from torchslam.slam.monitor import Monitor
-from torchslam.slam.progress import log_final, progress_callback
+from torchslam.systems import run_sequence
+from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+from torchslam.systems.monitor import Monitor
+from torchslam.app.progress import log_final, progress_callback
 
 
 class Recorder(Monitor):
@@ -71,7 +71,7 @@ def test_progress_without_groundtruth_or_estimate_logs_only_what_exists():
 def test_estimate_so_far_after_the_last_frame_equals_the_final_trajectory():
     # Without a final re-optimisation and with depth instants equal to the frame stamps, the
     # live estimate after the last frame is the output.
-    from torchslam.slam.nislam import NISlam
+    from torchslam.systems.nislam import NISlam
 
     seq = generate_sequence(SyntheticConfig(frames=24, width=320, height=240, trajectory="orbit", seed=6))
     for system in (NISlam(), GCSlam(GCSlamConfig(threaded=False, final_iterations=0))):
@@ -87,7 +87,7 @@ def test_tensorboard_tags_and_steps_of_a_short_nislam_run(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from torchslam.slam.run import RunOptions, run
+    from torchslam.app.run import RunOptions, run
 
     out = tmp_path / "run"
     opts = RunOptions(system="nislam", data="synthetic", out=out, monitor_every=5)

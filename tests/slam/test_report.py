@@ -9,7 +9,7 @@ from torchslam.cli import main
 from torchslam.data import read_tum_trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import DataFormatError
-from torchslam.slam.report import find_groundtruth, load_batch, write_report
+from torchslam.app.report import find_groundtruth, load_batch, write_report
 
 SMALL = [
     "--set", "data.synthetic.frames=12", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120",
@@ -97,7 +97,7 @@ def test_report_skips_folders_that_are_not_runs_and_says_how_many(tmp_path, capl
     (root / "notes").mkdir()
     (root / "other").mkdir()
     (root / "other" / "metrics.json").write_text(json.dumps({"system": "orbslam", "frames": 3}))
-    with caplog.at_level(logging.WARNING, logger="torchslam.slam.report"):
+    with caplog.at_level(logging.WARNING, logger="torchslam.app.report"):
         doc = load_batch(root)
     assert [r["name"] for r in doc["rows"]] == ["run"] and doc["rows"][0]["status"] == "ok"
     assert doc["skipped"] == ["notes", "other", "train-kcc"]

@@ -10,9 +10,9 @@ from torchslam.cli import main
 from torchslam.config import config_from_dict
 from torchslam.data import read_tum_trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
-from torchslam.slam import run_sequence
-from torchslam.slam.nislam import NISlam, NISlamConfig
-from torchslam.slam.outputs import METRIC_KEYS, write_run
+from torchslam.systems import run_sequence
+from torchslam.systems.nislam import NISlam, NISlamConfig
+from torchslam.app.outputs import METRIC_KEYS, write_run
 
 from ._sequences import EditedSequence, interrupt_at
 
@@ -88,7 +88,7 @@ def _run(out, *extra):
 @pytest.fixture
 def no_data_read(monkeypatch):
     """Fail the test if the run opens its sequence (the output folder is checked before that)."""
-    from torchslam.slam import run as run_mod
+    from torchslam.app import run as run_mod
 
     def refuse(*args, **kwargs):
         raise AssertionError("the sequence was opened although --out cannot take the run")
@@ -115,7 +115,7 @@ def test_an_out_that_cannot_take_a_run_is_refused_before_any_data_is_read(tmp_pa
     import os
     import subprocess
 
-    from torchslam.slam import runfolder
+    from torchslam.app import runfolder
 
     if case == "file":
         out = tmp_path / "taken"
@@ -175,7 +175,7 @@ def test_a_non_empty_out_is_refused_unless_overwrite_which_clears_it(tmp_path, c
 
 
 def test_the_default_out_folder_is_always_a_new_one(tmp_path):
-    from torchslam.slam.run import default_out_dir
+    from torchslam.app.run import default_out_dir
 
     first = default_out_dir("nislam", "synthetic", root=tmp_path)
     assert first.name.startswith("nislam-synthetic-") and not first.exists()
@@ -189,7 +189,7 @@ def test_a_write_error_at_the_end_keeps_the_other_files_and_says_so(tmp_path, ca
     import errno
     import os
 
-    from torchslam.slam import outputs
+    from torchslam.app import outputs
 
     def full_disk(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
@@ -215,7 +215,7 @@ def test_a_write_error_at_the_end_keeps_the_other_files_and_says_so(tmp_path, ca
 
 
 def test_an_interrupted_run_writes_the_partial_run_and_exits_130(tmp_path, capsys, monkeypatch):
-    from torchslam.slam import run as run_mod
+    from torchslam.app import run as run_mod
 
     real = run_mod.load_sequence
     monkeypatch.setattr(run_mod, "load_sequence", lambda data, cfg: EditedSequence(real(data, cfg), interrupt_at(5)))
@@ -255,7 +255,7 @@ def test_an_odd_frame_of_a_real_sequence_is_skipped_and_counted(tmp_path, capsys
 def test_a_synth_folder_runs_on_its_own_imu_as_the_in_memory_sequence_does(tmp_path, capsys):
     from torchslam.data import TUMSequence
     from torchslam.eval import ate
-    from torchslam.slam.nislam import attitude_stream
+    from torchslam.systems.nislam import attitude_stream
 
     n, size, traj = 30, ["160", "120"], "handheld"
     folder = tmp_path / "seq"

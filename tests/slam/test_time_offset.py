@@ -12,9 +12,9 @@ from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
 from torchslam.geometry import so3_exp
 from torchslam.imu.attitude import AttitudeStream
-from torchslam.slam import run_sequence
-from torchslam.slam.nislam import NISlam, NISlamConfig
-from torchslam.slam.time_offset import estimate_attitude_time_offset, rotation_agreement
+from torchslam.systems import run_sequence
+from torchslam.systems.nislam import NISlam, NISlamConfig
+from torchslam.app.calibrate_time import estimate_attitude_time_offset, rotation_agreement
 
 from ._sequences import EditedSequence
 

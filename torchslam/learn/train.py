@@ -2,7 +2,7 @@
 
 Both fit on training seeds of synthetic data, evaluate on held-out seeds and report against the
 untrained baseline (the paper's σ = 0.2, λ = 0.1; FastGO with every pair weighted 1). Scalars go
-to an injected :class:`~torchslam.slam.monitor.Monitor` (TensorBoard in ``scripts/train.py``).
+to an injected :class:`~torchslam.systems.monitor.Monitor` (TensorBoard in ``scripts/train.py``).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import torch
 
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_limits
 from ..fastgo import FastGOConfig, FastGOProblem, optimize_batch
-from ..slam.monitor import Monitor
-from ..slam.nislam import NISlamConfig
+from ..systems.monitor import Monitor
+from ..systems.nislam import NISlamConfig
 from .kcc import KCCPairs, kcc_pair_errors, kcc_shift_loss, synthetic_kcc_pairs, tum_kcc_pairs
 from .pairnet import (
     FalseLoopProblem,

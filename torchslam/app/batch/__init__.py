@@ -1,0 +1,41 @@
+"""Many sequences: ``torchslam batch`` (sources, summary, resume, distributed runs)."""
+
+from .runner import (
+    STATUSES,
+    SUMMARY_COLUMNS,
+    TIMING_COLUMNS,
+    TOTAL_TIMING_KEYS,
+    BatchOptions,
+    BatchResult,
+    BatchSource,
+    GroupRunner,
+    completed_run,
+    expand_sources,
+    format_table,
+    loop_count,
+    run_batch,
+    run_group,
+    select_engine,
+    summary_row,
+    summary_totals,
+)
+
+__all__ = [
+    "STATUSES",
+    "SUMMARY_COLUMNS",
+    "TIMING_COLUMNS",
+    "TOTAL_TIMING_KEYS",
+    "BatchOptions",
+    "BatchResult",
+    "BatchSource",
+    "GroupRunner",
+    "completed_run",
+    "expand_sources",
+    "format_table",
+    "loop_count",
+    "run_batch",
+    "run_group",
+    "select_engine",
+    "summary_row",
+    "summary_totals",
+]

@@ -1,0 +1,248 @@
+"""What every SLAM system provides, and the loop that drives one over a sequence.
+
+A system is fed frames one at a time (``track``) and returns everything it estimated at the end
+(``finish``). The driver measures time spent waiting for frames (decode) separately from time
+spent inside the system (compute), turns Ctrl-C into a clean stop that keeps what was computed,
+and counts frames that the sequence had to skip.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import torch
+from torch import Tensor
+
+from ..data.frame import Frame, Sequence
+from ..errors import ConfigError
+from .memory import check_run_memory
+
+__all__ = [
+    "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "empty_output", "frame_poses",
+    "resample_poses", "run_sequence",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class SystemOutput:
+    """Everything a system estimated over one sequence.
+
+    Convention:
+        Every pose and map point is in one world frame, the same for both systems: the camera
+        frame of the first keyframe at its depth instant (x right, y down, z forward, metres),
+        so ``keyframe_T_wc[0]`` is the identity, and ``map_points`` line up with ``T_wc``.
+
+    Attributes:
+        frame_indices: (N,) int64 indices (into the sequence) of the frames that have a pose.
+        timestamps: (N,) float64 seconds of those frames.
+        T_wc: (N, 4, 4) float64 estimated camera-to-world poses, after the final optimisation.
+        keyframe_indices: (K,) int64 sequence indices of the keyframes.
+        keyframe_T_wc: (K, 4, 4) float64 keyframe poses.
+        map_points: optional (P, 3) float32 world points of the map, metres.
+        map_colors: optional (P, 3) float32 colours in [0, 1].
+        stage_ms: total milliseconds spent in each named stage.
+        metrics: system-specific figures (loops, PSR statistics, attitude source, ...).
+        prior_indices: (M,) int64 sequence indices of the frames among ``frame_indices`` whose
+            pose is a motion prior, not an estimate from their own data (GC-SLAM's lost frames
+            holding the last pose and unlinked keyframes started there, NI-SLAM's frames on the
+            constant-velocity prediction); None = none.
+    """
+
+    frame_indices: Tensor
+    timestamps: Tensor
+    T_wc: Tensor
+    keyframe_indices: Tensor
+    keyframe_T_wc: Tensor
+    map_points: Tensor | None = None
+    map_colors: Tensor | None = None
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+    prior_indices: Tensor | None = None
+
+
+class SlamSystem(Protocol):
+    """Interface of a SLAM system as the driver sees it."""
+
+    name: str
+
+    def start(self, sequence: Sequence) -> None:
+        """Prepare for a new sequence (camera, attitude stream, ...)."""
+
+    def track(self, frame: Frame) -> None:
+        """Process one frame."""
+
+    def finish(self) -> SystemOutput:
+        """Run any final optimisation and return the estimates."""
+
+
+@dataclass
+class RunResult:
+    """A system's output plus how the run went."""
+
+    output: SystemOutput
+    frames_total: int
+    frames_processed: int
+    frames_skipped: int
+    skipped: list[tuple[int, str]]
+    wall_s: float
+    compute_s: float
+    interrupted: bool
+
+    @classmethod
+    def of(cls, sequence, output: SystemOutput, processed: int, wall_s: float, compute_s: float, interrupted: bool) -> "RunResult":
+        """The result of a run over ``sequence``; the frames it skipped come from the sequence."""
+        skipped = list(getattr(sequence, "skipped", []))
+        return cls(
+            output=output, frames_total=len(sequence), frames_processed=processed, frames_skipped=len(skipped),
+            skipped=skipped, wall_s=wall_s, compute_s=compute_s, interrupted=interrupted,
+        )
+
+    @property
+    def fps_end_to_end(self) -> float:
+        return self.frames_processed / self.wall_s if self.wall_s > 0 else 0.0
+
+    @property
+    def fps_compute(self) -> float:
+        return self.frames_processed / self.compute_s if self.compute_s > 0 else 0.0
+
+
+def check_max_frames(value: Any, name: str = "--max-frames") -> int | None:
+    """Validate a frame limit of ``run`` or ``batch``: None (all frames) or an integer >= 1.
+
+    Raises:
+        ConfigError: naming ``name`` for 0, a negative number or a non-integer.
+    """
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ConfigError(f"{name}: expected an integer >= 1, got {value!r}")
+    return value
+
+
+def run_sequence(
+    system: SlamSystem,
+    sequence: Sequence,
+    progress: Callable[[Iterable[Frame]], Iterable[Frame]] | None = None,
+    max_frames: int | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> RunResult:
+    """Drive ``system`` over ``sequence`` and return its output and timings.
+
+    Ctrl-C (``KeyboardInterrupt``) stops the loop; the system is still asked to ``finish`` so
+    the frames processed so far are returned with ``interrupted=True``.
+
+    Args:
+        system: the SLAM system.
+        sequence: frames to process, in order.
+        progress: optional wrapper around the frame iterator (e.g. a progress bar).
+        max_frames: stop after this many frames.
+        on_frame: called with the number of frames processed so far after each frame, outside
+            the compute timer (monitoring: e.g. the ATE so far every n frames).
+
+    Raises:
+        InsufficientMemoryError: before the first frame is read, when the configuration's
+            estimated memory exceeds the device's (``slam.memory``).
+    """
+    check_run_memory(system, [getattr(sequence, "camera", None)])
+    frames: Iterable[Frame] = iter(sequence)
+    if progress is not None:
+        frames = progress(frames)
+    system.start(sequence)
+    processed, compute_s, interrupted = 0, 0.0, False
+    t_start = time.perf_counter()
+    try:
+        for frame in frames:
+            if max_frames is not None and processed >= max_frames:
+                break
+            t0 = time.perf_counter()
+            system.track(frame)
+            compute_s += time.perf_counter() - t0
+            processed += 1
+            if on_frame is not None:
+                on_frame(processed)
+    except KeyboardInterrupt:
+        interrupted = True
+        logger.warning("interrupted after %d frames; finishing with what was computed", processed)
+    t0 = time.perf_counter()
+    output = system.finish()
+    t_end = time.perf_counter()
+    compute_s += t_end - t0
+    return RunResult.of(sequence, output, processed, t_end - t_start, compute_s, interrupted)
+
+
+def add_stage_ms(stage_ms: dict[str, float], stage: str, t0: float) -> float:
+    """Add the milliseconds since ``t0`` (``time.perf_counter``) to ``stage_ms[stage]``; return now."""
+    t1 = time.perf_counter()
+    stage_ms[stage] = stage_ms.get(stage, 0.0) + 1000.0 * (t1 - t0)
+    return t1
+
+
+def empty_output(dtype: torch.dtype = torch.float64) -> SystemOutput:
+    """An output with no frames (a system that was stopped before its first frame)."""
+    return SystemOutput(
+        frame_indices=torch.zeros(0, dtype=torch.int64),
+        timestamps=torch.zeros(0, dtype=torch.float64),
+        T_wc=torch.zeros(0, 4, 4, dtype=dtype),
+        keyframe_indices=torch.zeros(0, dtype=torch.int64),
+        keyframe_T_wc=torch.zeros(0, 4, 4, dtype=dtype),
+    )
+
+
+def resample_poses(t_from: Tensor, T_from: Tensor, t_to: Tensor, max_gap: float) -> Tensor:
+    """Re-sample poses taken at instants ``t_from`` at the instants ``t_to`` (one per pose).
+
+    Both systems track each frame at its depth image's instant, while the trajectory is reported
+    at the frame (colour) timestamps; on TUM fr1 the two alternate ~15 ms before and after each
+    other, which at 0.4 m/s is ±6 mm. Poses are interpolated (linear in translation, SLERP in
+    rotation) between neighbouring instants of ``t_from``; poses outside their span, across a
+    gap longer than ``max_gap``, or of a non-increasing ``t_from`` are kept as they are.
+
+    Args:
+        t_from: (N,) float64 instants of ``T_from``, seconds.
+        T_from: (N, 4, 4) float64 poses.
+        t_to: (N,) float64 instants to report them at.
+        max_gap: largest gap of ``t_from`` interpolated across, seconds.
+
+    Returns:
+        (N, 4, 4) poses at ``t_to``.
+    """
+    from ..data.trajectory import Trajectory
+
+    if len(t_from) < 2 or torch.equal(t_from, t_to) or not bool((t_from[1:] > t_from[:-1]).all()):
+        return T_from
+    T, ok = Trajectory(t_from, T_from).interpolate(t_to, max_gap)
+    return torch.where(ok[:, None, None], T, T_from)
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """What a lockstep ``track_frames`` step did for each system (``nislam`` and ``gcslam``).
+
+    Attributes:
+        errors: per system, the exception one of its phases raised (its state is then undefined
+            and it should be dropped), or None.
+        compute_s: per system, seconds of compute attributed to it: its own phases plus an equal
+            share of every batched call it took part in.
+    """
+
+    errors: list[Exception | None]
+    compute_s: list[float]
+
+
+def frame_poses(T_wk: Tensor, frame_kf: list[int], frame_T_kf: list[Tensor]) -> Tensor:
+    """Pose every frame from its keyframe: ``T_wc = T_wk[kf] @ T_kf_frame``, batched.
+
+    Args:
+        T_wk: (K, 4, 4) float64 keyframe poses.
+        frame_kf: N keyframe indices, one per frame.
+        frame_T_kf: N (4, 4) poses of the frames relative to their keyframes.
+
+    Returns:
+        (N, 4, 4) float64 camera-to-world poses (on ``T_wk``'s device).
+    """
+    kf_of = torch.tensor(frame_kf, dtype=torch.int64, device=T_wk.device)
+    return T_wk[kf_of] @ torch.stack(frame_T_kf).to(T_wk)

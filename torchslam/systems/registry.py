@@ -1,0 +1,89 @@
+"""The SLAM systems torchslam ships, looked up by name.
+
+Each entry names the module that defines the system; a module that is not part of this
+installation is simply not available, and ``run`` says so instead of pretending.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from ..errors import ConfigError
+
+__all__ = ["KNOWN_SYSTEMS", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """How to configure and build one system.
+
+    Attributes:
+        name: the name used on the command line (``--system``).
+        description: one line for help texts.
+        config_cls: the system's frozen config dataclass (defaults in code).
+        build: ``build(config, device, monitor) -> SlamSystem``.
+        memory: ``memory(config, camera, batch) -> {part: (bytes, settings behind it)}``, the
+            system's own peak-memory parts beyond the input images (``systems.memory``), or None.
+    """
+
+    name: str
+    description: str
+    config_cls: type
+    build: Callable[..., Any]
+    memory: Callable[..., dict[str, tuple[int, str]]] | None = None
+
+
+# name -> (module, attribute holding its SystemSpec, what it is)
+KNOWN_SYSTEMS: dict[str, tuple[str, str, str]] = {
+    "nislam": ("torchslam.systems.nislam", "SPEC", "NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators"),
+    "gcslam": ("torchslam.systems.gcslam", "SPEC", "GC-SLAM: ORB/dense registration with FastGO global optimisation"),
+}
+
+
+def _module_exists(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def available_systems() -> list[str]:
+    """Names of the systems this installation can run."""
+    return [name for name, (module, _, _) in KNOWN_SYSTEMS.items() if _module_exists(module)]
+
+
+def get_system(name: str) -> SystemSpec:
+    """Return the spec of system ``name``.
+
+    Raises:
+        ConfigError: for an unknown name, or a known system that this version does not include,
+            listing the systems that are available.
+    """
+    avail = available_systems()
+    listing = ", ".join(avail) if avail else "none yet"
+    if name not in KNOWN_SYSTEMS:
+        raise ConfigError(f"--system {name!r}: unknown system; available systems: {listing}")
+    if name not in avail:
+        raise ConfigError(
+            f"--system {name!r}: {KNOWN_SYSTEMS[name][2]} is not implemented in this version of torchslam; "
+            f"available systems: {listing}"
+        )
+    module, attr, _ = KNOWN_SYSTEMS[name]
+    return getattr(importlib.import_module(module), attr)
+
+
+def spec_for_config(cfg: Any) -> SystemSpec:
+    """The spec of the available system whose config class ``cfg`` is.
+
+    Raises:
+        ConfigError: when no available system owns ``type(cfg)``.
+    """
+    for name in available_systems():
+        spec = get_system(name)
+        if type(cfg) is spec.config_cls:
+            return spec
+    raise ConfigError(f"cfg: {type(cfg).__name__} is the config of no available system ({', '.join(available_systems())})")
