@@ -21,6 +21,14 @@ logger = logging.getLogger("torchslam")
 DEFAULT_SYSTEM = "nislam"
 
 
+def _add_threads(p) -> None:
+    from .threads import POLICY_THREADS, THREADS_ENV
+
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help=f"intra-op CPU threads (default: ${THREADS_ENV} if set, else {POLICY_THREADS}, which stays fast "
+                   "beside other work; see the README's 'Threads')")
+
+
 def _add_run(sub) -> None:
     from .slam.registry import KNOWN_SYSTEMS
 
@@ -37,6 +45,7 @@ def _add_run(sub) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_threads(p)
 
 
 def _cmd_run(args) -> int:
@@ -54,7 +63,7 @@ def _cmd_run(args) -> int:
     options = RunOptions(
         system=args.system, data=args.data, out=out, device=args.device,
         tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
-        params=Path(args.params) if args.params else None,
+        params=Path(args.params) if args.params else None, threads=args.threads,
     )
     progress = None
     if not args.no_progress:
@@ -97,6 +106,7 @@ def _add_batch(sub) -> None:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where tensors live (default cpu)")
     p.add_argument("--max-frames", type=int, default=None, help="stop each sequence after this many frames")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
+    _add_threads(p)
 
 
 def _cmd_batch(args) -> int:
@@ -108,7 +118,7 @@ def _cmd_batch(args) -> int:
     get_system(args.system)  # fail fast, before any data is touched
     options = BatchOptions(
         system=args.system, sources=tuple(args.sources), out=Path(args.out), batch_size=args.batch_size,
-        device=args.device, tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
+        device=args.device, tensorboard=not args.no_tensorboard, max_frames=args.max_frames, threads=args.threads,
     )
     rank = f"[rank {os.environ['RANK']}] " if "RANK" in os.environ and os.environ.get("WORLD_SIZE", "1") != "1" else ""
 
@@ -234,6 +244,7 @@ def _add_calibrate_time(sub) -> None:
     p.add_argument("--pairs", type=int, default=60, help="frame pairs registered (default 60)")
     p.add_argument("--frame-gap", type=int, default=3, help="pairs are (i, i + gap) (default 3)")
     p.add_argument("--json", action="store_true", help="print JSON with the whole cost curve")
+    _add_threads(p)
 
 
 def _cmd_calibrate_time(args) -> int:
@@ -241,7 +252,9 @@ def _cmd_calibrate_time(args) -> int:
     from .slam.nislam import NISlamConfig, attitude_stream
     from .slam.run import DataConfig, load_sequence
     from .slam.time_offset import estimate_attitude_time_offset
+    from .threads import setup_threads
 
+    threads = setup_threads(args.threads)
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")
     if args.pairs < 1 or args.frame_gap < 1:
@@ -254,7 +267,7 @@ def _cmd_calibrate_time(args) -> int:
         max_pairs=args.pairs,
     )
     if args.json:
-        print(json.dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}, indent=2))
+        print(json.dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict(), **threads.to_dict()}, indent=2))
         return 0
     print(f"sequence          {seq.name}")
     print(f"attitude source   {stream.source}")

@@ -17,6 +17,7 @@ from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
 from ..errors import ConfigError
+from ..threads import setup_threads
 from .base import run_sequence
 from .monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -58,6 +59,8 @@ class RunOptions:
     ``params`` is a checkpoint of learned config values (``torchslam.learn.save_checkpoint``)
     applied on top of the config file and below ``--set`` overrides. With ``tensorboard``, the
     ATE so far, running stage times and counters are logged every ``monitor_every`` frames.
+    ``threads`` is the intra-op thread count; None takes ``TORCHSLAM_THREADS`` or else the
+    default of :mod:`torchslam.threads`. :func:`run` applies it to the whole process.
     """
 
     system: str
@@ -68,6 +71,7 @@ class RunOptions:
     max_frames: int | None = None
     params: Path | None = None
     monitor_every: int = 30
+    threads: int | None = None
 
 
 def resolve_config(
@@ -152,6 +156,7 @@ def run(
     Returns:
         The metrics written to ``metrics.json``.
     """
+    threads = setup_threads(options.threads, flag_name="--threads")
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     sequence = load_sequence(options.data, data_cfg)
@@ -164,7 +169,7 @@ def run(
         if options.tensorboard:
             log_final(monitor, result.output, sequence, f"{options.system} on {sequence.name}", result.frames_processed)
         resolved["device"] = options.device
-        extra = {"device": options.device, "data": options.data}
+        extra = {"device": options.device, "data": options.data, **threads.to_dict()}
         if options.params is not None:
             extra["params"] = str(options.params)
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)
