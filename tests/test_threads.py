@@ -10,7 +10,9 @@ from torchslam.cli import main
 from torchslam.errors import ConfigError
 from torchslam.slam.batch import BatchOptions, run_batch
 from torchslam.slam.run import RunOptions, run
-from torchslam.threads import POLICY_THREADS, THREADS_ENV, ThreadSetting, parse_threads, resolve_threads, setup_threads
+from torchslam.threads import (
+    POLICY_THREADS, THREADS_ENV, ThreadSetting, available_cpus, parse_threads, resolve_threads, setup_threads,
+)
 
 SMALL = ["data.synthetic.frames=4", "data.synthetic.width=160", "data.synthetic.height=120",
          "kcc.ortho_height=90", "kcc.ortho_width=120", "min_valid_points=100"]
@@ -25,14 +27,17 @@ def restore_opencv_threads():
 
 
 def test_flag_wins_over_variable_which_wins_over_policy():
-    assert resolve_threads(3, {THREADS_ENV: "2"}) == ThreadSetting(3, "flag")
-    assert resolve_threads("4", {}) == ThreadSetting(4, "flag")
-    assert resolve_threads(None, {THREADS_ENV: "2"}) == ThreadSetting(2, "env")
-    assert resolve_threads(None, {THREADS_ENV: " 5 "}) == ThreadSetting(5, "env")
-    assert resolve_threads(None, {}) == ThreadSetting(POLICY_THREADS, "policy")
-    assert resolve_threads(None, {THREADS_ENV: ""}) == ThreadSetting(POLICY_THREADS, "policy")
+    assert resolve_threads(3, {THREADS_ENV: "2"}, cpus=8) == ThreadSetting(3, "flag", 3)
+    assert resolve_threads("4", {}, cpus=8) == ThreadSetting(4, "flag", 4)
+    assert resolve_threads(None, {THREADS_ENV: "2"}, cpus=8) == ThreadSetting(2, "env", 2)
+    assert resolve_threads(None, {THREADS_ENV: " 5 "}, cpus=8) == ThreadSetting(5, "env", 5)
+    # The policy: one PyTorch thread (OpenMP spins under load), OpenCV on every core (it does not).
+    assert resolve_threads(None, {}, cpus=8) == ThreadSetting(POLICY_THREADS, "policy", 8)
+    assert resolve_threads(None, {THREADS_ENV: ""}, cpus=2) == ThreadSetting(POLICY_THREADS, "policy", 2)
+    assert resolve_threads(None, {}, cpus=0) == ThreadSetting(POLICY_THREADS, "policy", 1)
+    assert resolve_threads(None, {}).opencv_threads == available_cpus() >= 1
     assert POLICY_THREADS == 1
-    assert ThreadSetting(2, "env").to_dict() == {"threads": 2, "threads_source": "env"}
+    assert ThreadSetting(2, "env", 2).to_dict() == {"threads": 2, "threads_source": "env", "opencv_threads": 2}
 
 
 @pytest.mark.parametrize("value", [0, -1, "0", "x", "1.5", 1.5, True, "", "2 threads"])
@@ -41,7 +46,7 @@ def test_a_bad_flag_names_the_flag(value):
         resolve_threads(value, {})
 
 
-@pytest.mark.parametrize("value", ["0", "-3", "two", "1.5", "1e2"])
+@pytest.mark.parametrize("value", ["0", "-3", "two", "1.5", "1e2", "\u00b2"])
 def test_a_bad_variable_names_the_variable_even_under_a_flag(value):
     with pytest.raises(ConfigError, match=rf"^{THREADS_ENV}: expected a whole number of threads >= 1, got '{value}'"):
         resolve_threads(None, {THREADS_ENV: value})
@@ -51,11 +56,13 @@ def test_a_bad_variable_names_the_variable_even_under_a_flag(value):
 
 
 def test_setup_sets_torch_and_opencv_pools(restore_opencv_threads):
-    assert setup_threads(2, {}) == ThreadSetting(2, "flag")
+    assert setup_threads(2, {}) == ThreadSetting(2, "flag", 2)
     assert torch.get_num_threads() == 2 and cv2.getNumThreads() == 2
-    assert setup_threads(None, {THREADS_ENV: "3"}) == ThreadSetting(3, "env")
+    assert setup_threads(None, {THREADS_ENV: "3"}) == ThreadSetting(3, "env", 3)
     assert torch.get_num_threads() == 3 and cv2.getNumThreads() == 3
-    assert setup_threads(None, {}) == ThreadSetting(1, "policy")
+    assert setup_threads(None, {}, cpus=2) == ThreadSetting(1, "policy", 2)
+    assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 2
+    assert setup_threads(1, {}) == ThreadSetting(1, "flag", 1)
     # OpenCV's sequential mode (setNumThreads(0)) reports one thread.
     assert torch.get_num_threads() == 1 and cv2.getNumThreads() == 1
 
@@ -72,6 +79,7 @@ def test_run_records_the_setting_in_metrics(tmp_path, monkeypatch, restore_openc
     torch.set_num_threads(3)
     m = run(RunOptions(system="nislam", data="synthetic", out=tmp_path / "policy", tensorboard=False), overrides=SMALL)
     assert (m["threads"], m["threads_source"], m["environment"]["torch_threads"]) == (POLICY_THREADS, "policy", POLICY_THREADS)
+    assert m["opencv_threads"] == available_cpus()
 
 
 def test_batch_records_the_setting_in_runs_and_summary(tmp_path, restore_opencv_threads):

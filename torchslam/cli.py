@@ -25,8 +25,8 @@ def _add_threads(p) -> None:
     from .threads import POLICY_THREADS, THREADS_ENV
 
     p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help=f"intra-op CPU threads (default: ${THREADS_ENV} if set, else {POLICY_THREADS}, which stays fast "
-                   "beside other work; see the README's 'Threads')")
+                   help=f"CPU threads of PyTorch and OpenCV (default: ${THREADS_ENV} if set, else {POLICY_THREADS} for "
+                   "PyTorch, which stays fast beside other work, and all cores for OpenCV; see the README's 'Threads')")
 
 
 def _add_run(sub) -> None:
