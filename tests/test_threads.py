@@ -110,3 +110,10 @@ def test_cli_flag_reaches_the_run(tmp_path, monkeypatch, capsys, restore_opencv_
     assert main(["run", "--out", str(out), "--no-progress", "--no-tensorboard", "--threads", "1", *SMALL_ARGS]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["threads"], metrics["threads_source"]) == (1, "flag")
+
+
+def test_synth_takes_the_variable_too(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(THREADS_ENV, "0")
+    assert main(["synth", "--out", str(tmp_path / "s"), "--frames", "2"]) == 2
+    assert f"{THREADS_ENV}: expected a whole number of threads >= 1, got '0'" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()

@@ -219,7 +219,9 @@ def _add_synth(sub) -> None:
 def _cmd_synth(args) -> int:
     from .config import config_from_dict
     from .data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
+    from .threads import setup_threads
 
+    setup_threads()  # rendering is torch work too: the same default (or $TORCHSLAM_THREADS)
     changes = {"frames": args.frames, "seed": args.seed}
     for key in ("trajectory", "width", "height"):
         if getattr(args, key) is not None:
