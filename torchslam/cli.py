@@ -22,6 +22,14 @@ logger = logging.getLogger("torchslam")
 DEFAULT_SYSTEM = "nislam"
 
 
+def _add_threads(p) -> None:
+    from .threads import POLICY_THREADS, THREADS_ENV
+
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help=f"CPU threads of PyTorch and OpenCV (default: ${THREADS_ENV} if set, else {POLICY_THREADS} for "
+                   "PyTorch, which stays fast beside other work, and all cores for OpenCV; see the README's 'Threads')")
+
+
 def _config_help() -> str:
     from .config import preset_names
 
@@ -58,6 +66,7 @@ def _add_run(sub) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames (>= 1)")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_threads(p)
 
 
 def _cmd_run(args) -> int:
@@ -75,7 +84,7 @@ def _cmd_run(args) -> int:
     options = RunOptions(
         system=args.system, data=args.data, out=out, device=args.device,
         tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
-        params=Path(args.params) if args.params else None, overwrite=args.overwrite,
+        params=Path(args.params) if args.params else None, overwrite=args.overwrite, threads=args.threads,
     )
     progress = None
     if not args.no_progress:
@@ -148,6 +157,7 @@ def _add_batch(sub) -> None:
                    help="redo sequences whose folders hold a complete run of another request (system, data, "
                    "config, --max-frames); without it such a batch is refused. Each old run is replaced only "
                    "once its new run is written")
+    _add_threads(p)
 
 
 def _cmd_batch(args) -> int:
@@ -160,7 +170,7 @@ def _cmd_batch(args) -> int:
     options = BatchOptions(
         system=args.system, sources=tuple(args.sources), out=Path(args.out), batch_size=args.batch_size,
         device=args.device, tensorboard=not args.no_tensorboard, max_frames=args.max_frames,
-        overwrite=args.overwrite,
+        overwrite=args.overwrite, threads=args.threads,
     )
     rank = f"[rank {os.environ['RANK']}] " if "RANK" in os.environ and os.environ.get("WORLD_SIZE", "1") != "1" else ""
 
@@ -277,7 +287,9 @@ def _add_synth(sub) -> None:
 def _cmd_synth(args) -> int:
     from .config import config_from_dict
     from .data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
+    from .threads import setup_threads
 
+    setup_threads()  # rendering is torch work too: the same default (or $TORCHSLAM_THREADS)
     changes = {"frames": args.frames, "seed": args.seed}
     for key in ("trajectory", "width", "height"):
         if getattr(args, key) is not None:
@@ -302,6 +314,7 @@ def _add_calibrate_time(sub) -> None:
     p.add_argument("--pairs", type=int, default=60, help="frame pairs registered (default 60)")
     p.add_argument("--frame-gap", type=int, default=3, help="pairs are (i, i + gap) (default 3)")
     p.add_argument("--json", action="store_true", help="print JSON with the whole cost curve")
+    _add_threads(p)
 
 
 def _cmd_calibrate_time(args) -> int:
@@ -309,7 +322,9 @@ def _cmd_calibrate_time(args) -> int:
     from .systems.nislam import NISlamConfig, attitude_stream
     from .app.run import DataConfig, load_sequence
     from .app.calibrate_time import estimate_attitude_time_offset
+    from .threads import setup_threads
 
+    threads = setup_threads(args.threads)
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")
     if args.pairs < 1 or args.frame_gap < 1:
@@ -322,7 +337,7 @@ def _cmd_calibrate_time(args) -> int:
         max_pairs=args.pairs,
     )
     if args.json:
-        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict()}))
+        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict(), **threads.to_dict()}))
         return 0
     print(f"sequence          {seq.name}")
     print(f"attitude source   {stream.source}")

@@ -108,6 +108,7 @@ def test_cli_calibrate_time(tmp_path, capsys):
     assert main(["calibrate-time", "--data", str(out), "--attitude", "groundtruth", "--pairs", "8", "--frame-gap", "2", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["attitude_source"] == "groundtruth" and res["pairs"] == 8
+    assert (res["threads"], res["threads_source"]) == (1, "policy")
     assert abs(res["offset_s"]) < 0.005
     assert main(["calibrate-time", "--data", str(out), "--attitude", "groundtruth", "--pairs", "4"]) == 0
     text = capsys.readouterr().out

@@ -15,6 +15,7 @@ from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits
+from ..threads import setup_threads
 from ..systems.base import check_max_frames, run_sequence
 from ..systems.monitor import Monitor, TensorBoardMonitor
 from .outputs import write_run
@@ -66,6 +67,8 @@ class RunOptions:
     ATE so far, running stage times and counters are logged every ``monitor_every`` frames.
     ``out`` must be a missing or empty folder; ``overwrite`` clears one that holds only the
     files of an earlier run (see ``runfolder.prepare_run_folder``).
+    ``threads`` is the intra-op thread count; None takes ``TORCHSLAM_THREADS`` or else the
+    default of :mod:`torchslam.threads`. :func:`run` applies it to the whole process.
     """
 
     system: str
@@ -77,6 +80,7 @@ class RunOptions:
     params: Path | None = None
     monitor_every: int = 30
     overwrite: bool = False
+    threads: int | None = None
 
 
 def resolve_config(
@@ -164,6 +168,7 @@ def run(
         OutputWriteError: some output files could not be written; the others were.
     """
     check_max_frames(options.max_frames)
+    threads = setup_threads(options.threads, flag_name="--threads")
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     out = Path(options.out)
@@ -175,7 +180,7 @@ def run(
         on_frame = progress_callback(system, sequence, monitor, every=options.monitor_every) if options.tensorboard else None
         result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames, on_frame=on_frame)
         resolved["device"] = options.device
-        extra = {"device": options.device, "data": options.data}
+        extra = {"device": options.device, "data": options.data, **threads.to_dict()}
         if options.params is not None:
             extra["params"] = str(options.params)
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)

@@ -64,6 +64,7 @@ from ...data.synthetic import SYNTHETIC_TRAJECTORIES, SyntheticConfig, generate_
 from ...data.trajectory import read_tum_trajectory, write_tum_trajectory
 from ...environment import environment_info
 from ...errors import ConfigError, TorchSlamError
+from ...threads import ThreadSetting, setup_threads
 from ...strictjson import dumps as strict_dumps
 from ...systems.base import RunResult, check_max_frames, run_sequence
 from ...systems.lockstep import run_lockstep
@@ -565,9 +566,10 @@ def _finish_sequence(
     device: str,
     max_frames: int | None,
     monitor: Monitor,
+    threads: ThreadSetting,
 ) -> dict[str, Any]:
     """Write the run folder of one finished sequence (ground truth first, metrics.json last)."""
-    extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames}
+    extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames, **threads.to_dict()}
     # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
     # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
     groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
@@ -665,6 +667,8 @@ class BatchOptions:
         tensorboard: write TensorBoard events into each run folder.
         max_frames: stop each sequence after this many frames.
         overwrite: redo folders that hold a complete run of another request (else refuse).
+        threads: intra-op threads for the process; None takes ``TORCHSLAM_THREADS`` or else the
+            default of :mod:`torchslam.threads`. Each run folder and the summary record it.
     """
 
     system: str
@@ -675,6 +679,7 @@ class BatchOptions:
     tensorboard: bool = True
     max_frames: int | None = None
     overwrite: bool = False
+    threads: int | None = None
 
 
 @dataclass
@@ -747,6 +752,7 @@ def run_batch(
             some run folders hold a complete run of another request (before anything runs).
     """
     _check_options(options)
+    threads = setup_threads(options.threads, flag_name="--threads")
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
     sources = expand_sources(options.sources, data_cfg)
@@ -766,6 +772,7 @@ def run_batch(
             runner=runner,
             out=Path(options.out),
             device=f"cuda:{dist.local_rank}" if options.device == "cuda" and dist.active else options.device,
+            threads=threads,
         )
         lock = _lock_batch_folder(plan.out, dist)
         if not options.overwrite:
@@ -793,6 +800,7 @@ class _Plan:
     runner: GroupRunner
     out: Path
     device: str  # where tensors live in this process
+    threads: ThreadSetting  # applied to this process at the start
 
     def completed(self, src: BatchSource) -> dict[str, Any] | None:
         if src.error is not None:
@@ -895,7 +903,7 @@ def _run_shard(plan: _Plan, sources: list[BatchSource], dist: _Dist, on_row) -> 
             "interrupted": interrupted,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
-        result.summary_files = _write_summary(plan.out, header, ordered, totals)
+        result.summary_files = _write_summary(plan.out, header, ordered, totals, plan.threads)
     return result
 
 
@@ -936,7 +944,9 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
                 emit(src, summary_row(src, "failed", message=_write_error(folder, result)))
                 continue
             try:
-                metrics = _finish_sequence(folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor)
+                metrics = _finish_sequence(
+                    folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor, plan.threads
+                )
             except Exception as exc:  # noqa: BLE001 -- e.g. a full disk: this sequence fails, not the batch
                 emit(src, summary_row(src, "failed", message=_write_error(folder, exc)))
                 continue
@@ -988,9 +998,11 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]], totals: dict[str, Any]) -> list[Path]:
+def _write_summary(
+    out: Path, header: dict[str, Any], rows: list[dict[str, Any]], totals: dict[str, Any], threads: ThreadSetting
+) -> list[Path]:
     """Write ``summary.json``, ``summary.csv`` (one line per sequence) and ``summary.md``."""
-    doc = {**header, "totals": totals, "rows": rows, "environment": environment_info()}
+    doc = {**header, "totals": totals, "rows": rows, "environment": {**environment_info(), **threads.to_dict()}}
     paths = [out / "summary.json", out / "summary.csv", out / "summary.md"]
     _write_atomic(paths[0], strict_dumps(doc) + "\n")
     buf = io.StringIO()
