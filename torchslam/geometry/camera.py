@@ -232,7 +232,11 @@ def undistort_pixels(uv: Tensor, camera: PinholeCamera, newton_steps: int = 8) -
     K = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     d = np.asarray(camera.distortion, dtype=np.float64)
-    start = cv2.undistortPoints(uv.cpu().numpy().reshape(-1, 1, 2), K, d, None, None, None, criteria)
+    pixels = uv.cpu().numpy().reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4: the iterative inversion has its own name
+        start = cv2.undistortPointsIter(pixels, K, d, None, None, criteria)
+    else:  # OpenCV 5: undistortPoints takes the termination criteria
+        start = cv2.undistortPoints(pixels, K, d, None, None, None, criteria)
     xy = torch.from_numpy(np.ascontiguousarray(start.reshape(-1, 2), dtype=np.float64)).to(uv.device)
     for _ in range(newton_steps):
         res = distort_normalized(xy, camera.distortion) - xd
