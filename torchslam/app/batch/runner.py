@@ -10,8 +10,9 @@ runner ``(system, system_cfg, sequences, device, monitors, max_frames) -> [RunRe
 BaseException]``. The default, :func:`run_group`, runs them one after another. For a system
 whose registry spec declares ``lockstep`` and ``batch_size > 1``, the lockstep runner
 ``torchslam.systems.lockstep.run_lockstep`` is used (the group advances one frame of every
-sequence per step, the heavy stages batched across the group); ``summary.json`` records which
-engine ran.
+sequence per step: NI-SLAM back-projects and tracks the group's frames in batched calls while
+keyframes, fusion and loops stay per sequence; GC-SLAM solves the group's pose graphs in one
+FastGO call); ``summary.json`` records which engine ran.
 
 Resuming (``resume``). A sequence whose folder already holds a complete run of the same request
 is not run again; its row is read from its ``metrics.json`` and marked ``resumed``. A folder
@@ -103,7 +104,7 @@ def run_group(
         try:
             out.append(run_sequence(spec.build(system_cfg, device=device, monitor=monitor), seq, max_frames=max_frames))
         except Exception as exc:  # reported in the summary; the other sequences go on
-            logger.debug("%s failed", getattr(seq, "name", "?"), exc_info=True)
+            logger.debug("%s failed", seq.name, exc_info=True)
             out.append(exc)
     return out
 
@@ -111,9 +112,6 @@ def run_group(
 def select_engine(system: str, batch_size: int) -> tuple[str, GroupRunner]:
     """Choose how groups run: ``("lockstep", ...)`` for a system whose spec declares ``lockstep``
     and B > 1, else ``("sequential", run_group)``.
-
-    In lockstep NI-SLAM batches its per-frame tensor work across the group; GC-SLAM solves the
-    pose graphs of the group's sequences in one FastGO call per step.
 
     Returns:
         (engine name, group runner with :func:`run_group`'s signature).
@@ -154,7 +152,7 @@ def _finish_sequence(
     extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames, **threads.to_dict()}
     # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
     # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
-    groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
+    groundtruth = sequence.groundtruth_raw or sequence.groundtruth
     if groundtruth is not None and len(groundtruth):
         folder.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(folder / GROUNDTRUTH_FILE, groundtruth, header=f"ground truth of {sequence.name} (camera-to-world)")
