@@ -2,8 +2,9 @@
 
 Each entry names the module that defines the system and the capabilities the application
 switches on (whether it runs in lockstep); a module that is not part of this installation is
-simply not available, and ``run`` says so instead of pretending. This is the one place outside
-``systems/`` where a system is named.
+simply not available, and ``run`` says so instead of pretending. Code outside ``systems/``
+reaches a system through this table, not by importing it (the few system-specific exceptions
+are listed in ``tests/test_layers.py``).
 """
 
 from __future__ import annotations
