@@ -19,8 +19,6 @@ from .strictjson import dumps as strict_dumps
 
 logger = logging.getLogger("torchslam")
 
-DEFAULT_SYSTEM = "nislam"
-
 
 def _add_threads(p) -> None:
     from .threads import POLICY_THREADS, THREADS_ENV
@@ -40,7 +38,7 @@ def _config_help() -> str:
 
 
 def _add_run(sub) -> None:
-    from .systems.registry import KNOWN_SYSTEMS
+    from .systems.registry import DEFAULT_SYSTEM, KNOWN_SYSTEMS
 
     p = sub.add_parser(
         "run", help="run a SLAM system on a sequence and write a run folder",
@@ -132,7 +130,7 @@ def _run_line(system: str, metrics: dict) -> str:
 
 
 def _add_batch(sub) -> None:
-    from .systems.registry import KNOWN_SYSTEMS
+    from .systems.registry import DEFAULT_SYSTEM, KNOWN_SYSTEMS
 
     p = sub.add_parser(
         "batch",
@@ -146,7 +144,7 @@ def _add_batch(sub) -> None:
     p.add_argument("--system", default=DEFAULT_SYSTEM, help=f"one of {', '.join(KNOWN_SYSTEMS)} (default {DEFAULT_SYSTEM})")
     p.add_argument("--out", required=True, help="batch folder: one run folder per sequence plus summary.{md,csv,json}")
     p.add_argument("--batch-size", type=int, default=1,
-                   help="sequences per group; NI-SLAM groups run in lockstep where available (default 1)")
+                   help="sequences per group; groups of a system that supports it run in lockstep (default 1)")
     p.add_argument("--config", default=None, metavar="FILE|PRESET", help=_config_help())
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set data.synthetic.frames=100 (repeatable)")

@@ -7,12 +7,12 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from torchslam.data import Frame
+from torchslam.data import Frame, Sequence
 
 _ATTRIBUTES = ("name", "camera", "timestamps", "groundtruth", "attitude")
 
 
-class EditedSequence:
+class EditedSequence(Sequence):
     """``seq`` with each frame passed through ``edit`` (which may raise) on the way out.
 
     Keyword overrides replace the sequence's ``name``, ``camera``, ``timestamps``,

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
-from torchslam.systems import run_sequence
+from torchslam.data import Sequence
+from torchslam.systems import SlamSystem, run_sequence
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 from torchslam.systems.monitor import Monitor
 from torchslam.app.progress import log_final, progress_callback
@@ -54,10 +55,11 @@ def test_progress_logs_ate_so_far_stage_times_counters_and_trajectory_image():
 
 
 def test_progress_without_groundtruth_or_estimate_logs_only_what_exists():
-    class Plain:
+    # Only what the protocols require: the optional capabilities keep their defaults.
+    class Plain(SlamSystem):
         stage_ms = {"work": 5.0}
 
-    class NoTruth:
+    class NoTruth(Sequence):
         groundtruth = None
 
     mon = Recorder()

@@ -251,7 +251,7 @@ def write_run(
         "stage_ms_total": dict(o.stage_ms),
         "interrupted": result.interrupted,
     }
-    raw = getattr(sequence, "groundtruth_raw", None)
+    raw = sequence.groundtruth_raw
     # The headline is evo's on the files: the estimate as trajectory.txt holds it (1e-9 m, 1 us).
     on_disk = read_tum_trajectory(out / "trajectory.txt") if raw is not None and "trajectory.txt" in written else estimate
     metrics.update(evaluate_against_groundtruth(on_disk, sequence.groundtruth, raw, estimate_at_frames=estimate))

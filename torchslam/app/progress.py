@@ -8,8 +8,9 @@ each event), ``tracking/<per-frame figure>``, ``optimization/<solver>_ms``, imag
 
 ``progress_callback`` builds the ``on_frame`` hook that :func:`~torchslam.systems.run_sequence`
 calls after each frame; every ``every`` frames it asks the system for its current estimate
-(``estimate_so_far()``, where the system has one) and logs the ATE of that estimate against the
-ground truth, the running per-frame milliseconds of each stage and the system's counters.
+(``SlamSystem.estimate_so_far``) and logs the ATE of that estimate against the ground truth, the
+running per-frame milliseconds of each stage (``stage_ms``) and the system's counters
+(``progress_counters``).
 ``log_final`` adds the top view of the final trajectory against the ground truth as an image.
 The work happens outside the compute timer, so frame rates are unaffected apart from wall time.
 """
@@ -18,14 +19,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
 
 import torch
 
 from ..data.frame import Sequence
 from ..data.trajectory import Trajectory
 from ..errors import TorchSlamError
-from ..systems.base import SystemOutput
+from ..systems.base import SlamSystem, SystemOutput
 from ..systems.monitor import Monitor
 
 __all__ = ["log_final", "progress_callback"]
@@ -33,7 +33,7 @@ __all__ = ["log_final", "progress_callback"]
 logger = logging.getLogger(__name__)
 
 
-def _ate_so_far(system: Any, groundtruth: Trajectory) -> float | None:
+def _ate_so_far(system: SlamSystem, groundtruth: Trajectory) -> float | None:
     """The headline's ATE (SE(3), evo's association) of the system's current estimate."""
     from ..eval import ate
 
@@ -46,33 +46,29 @@ def _ate_so_far(system: Any, groundtruth: Trajectory) -> float | None:
         return None
 
 
-def progress_callback(system: Any, sequence: Sequence, monitor: Monitor, every: int = 30) -> Callable[[int], None]:
+def progress_callback(system: SlamSystem, sequence: Sequence, monitor: Monitor, every: int = 30) -> Callable[[int], None]:
     """The ``on_frame`` hook that logs the run's progress every ``every`` frames.
 
-    Logged (where available): ``eval/ate_so_far_m`` (systems with ``estimate_so_far()`` on
-    sequences with ground truth), ``timing/<stage>_ms`` (running mean per processed frame of the
+    Logged: ``eval/ate_so_far_m`` (on sequences with ground truth, where ``estimate_so_far()``
+    returns an estimate), ``timing/<stage>_ms`` (running mean per processed frame of the
     system's ``stage_ms``), ``progress/<counter>`` (the system's ``progress_counters()``).
     The step is the index of the last frame the system was given (``system.last_frame_index``;
-    ``n - 1`` for a system that does not say), as for every figure the systems log themselves.
+    ``n - 1`` while it is None), as for every figure the systems log themselves.
     """
     # The raw ground truth, as for the headline: the live estimate is at the depth instants,
     # which the ground truth interpolated at the colour stamps does not hold.
-    groundtruth = getattr(sequence, "groundtruth_raw", None) or sequence.groundtruth
+    groundtruth = sequence.groundtruth_raw or sequence.groundtruth
 
     def on_frame(n: int) -> None:
         if every <= 0 or n % every:
             return
-        step = getattr(system, "last_frame_index", None)
-        step = n - 1 if step is None else int(step)
-        if groundtruth is not None and hasattr(system, "estimate_so_far"):
+        step = n - 1 if system.last_frame_index is None else int(system.last_frame_index)
+        if groundtruth is not None:
             value = _ate_so_far(system, groundtruth)
             if value is not None:
                 monitor.scalar("eval/ate_so_far_m", value, step)
-        stage_ms = getattr(system, "stage_ms", None)
-        if isinstance(stage_ms, dict):
-            monitor.scalars({f"{k}_ms": v / n for k, v in dict(stage_ms).items()}, step, prefix="timing/")
-        if hasattr(system, "progress_counters"):
-            monitor.scalars(system.progress_counters(), step, prefix="progress/")
+        monitor.scalars({f"{k}_ms": v / n for k, v in dict(system.stage_ms).items()}, step, prefix="timing/")
+        monitor.scalars(system.progress_counters(), step, prefix="progress/")
 
     return on_frame
 

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections import abc
 from dataclasses import dataclass
-from typing import Iterator, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Iterator, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -12,6 +13,9 @@ from torch import Tensor
 from ..errors import ShapeError, check_shape
 from ..geometry import PinholeCamera
 from .trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from ..imu.attitude import AttitudeStream
 
 __all__ = ["Frame", "Sequence", "associate_timestamps"]
 
@@ -52,14 +56,31 @@ class Frame:
 class Sequence(Protocol):
     """What a system needs from a sequence; ``TUMSequence`` and ``SyntheticSequence`` provide it.
 
-    ``timestamps`` is (N,) float64 seconds; ``groundtruth`` holds the ground-truth pose of each
-    frame that has one (a Trajectory over a subset of ``timestamps``) or is None.
+    Required:
+        name: the sequence's name (run folders, messages).
+        camera: its intrinsics and image size.
+        timestamps: (N,) float64 frame (colour image) times, seconds.
+        groundtruth: the ground-truth pose of each frame that has one (a Trajectory over a
+            subset of ``timestamps``), or None.
+
+    Optional (a class that inherits from ``Sequence`` gets the defaults below; a class that
+    implements the protocol without inheriting from it defines them itself):
+        attitude: the sequence's own attitude stream (an AHRS on its IMU), or None (default)
+            where it has no gyroscope. NI-SLAM's ``attitude=imu`` takes it.
+        groundtruth_raw: the ground truth as its file holds it (its own stamps, not matched to
+            frames), or None (default) where there is no such file. The headline ATE and
+            NI-SLAM's ground-truth attitude are taken against it where present.
+        skipped: ``(index, reason)`` of the frames the sequence could not decode and skipped
+            during the last pass, in order; empty (default) for sequences that never skip.
     """
 
     name: str
     camera: PinholeCamera
     timestamps: Tensor
     groundtruth: Trajectory | None
+    attitude: AttitudeStream | None = None
+    groundtruth_raw: Trajectory | None = None
+    skipped: abc.Sequence[tuple[int, str]] = ()
 
     def __len__(self) -> int: ...
 

@@ -53,7 +53,7 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, FieldError
 from ..geometry import PinholeCamera, se3_from_Rt, so3_exp, vex
 from ..imu import AttitudeStream, ImuData, ImuNoise, Kinematics, ahrs_attitude, simulate_imu, time_derivatives
 from .calibration import DEPTH_SCALE_RANGE, intrinsics_problem
-from .frame import Frame
+from .frame import Frame, Sequence
 from .trajectory import Trajectory, write_tum_trajectory
 
 __all__ = [
@@ -920,7 +920,7 @@ def synthetic_kinematics(cfg: SyntheticConfig, times: Tensor) -> Kinematics:
 # Sequence
 
 
-class SyntheticSequence:
+class SyntheticSequence(Sequence):
     """A synthetic RGB-D-inertial sequence (implements the ``Sequence`` protocol).
 
     Frames are rendered lazily: indexing renders the batch of ``cfg.batch_size`` frames holding

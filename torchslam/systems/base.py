@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..data.frame import Frame, Sequence
+from ..data.trajectory import Trajectory
 from ..errors import ConfigError
 from .memory import check_run_memory
 
@@ -67,9 +68,23 @@ class SystemOutput:
 
 
 class SlamSystem(Protocol):
-    """Interface of a SLAM system as the driver sees it."""
+    """Interface of a SLAM system as the driver and the application's monitoring see it.
+
+    ``start``, ``track`` and ``finish`` drive a run. ``stage_ms``, ``last_frame_index``,
+    ``estimate_so_far`` and ``progress_counters`` are read between frames for live monitoring
+    (``app.progress``); a class that inherits from ``SlamSystem`` gets the defaults documented
+    below and logs only its stage times.
+
+    Attributes:
+        name: the system's registry name.
+        stage_ms: running total milliseconds per named stage over the current sequence.
+        last_frame_index: ``Frame.index`` of the frame last given to ``track`` (the step of
+            every live figure), or None before the first (default).
+    """
 
     name: str
+    stage_ms: dict[str, float]
+    last_frame_index: int | None = None
 
     def start(self, sequence: Sequence) -> None:
         """Prepare for a new sequence (camera, attitude stream, ...)."""
@@ -79,6 +94,15 @@ class SlamSystem(Protocol):
 
     def finish(self) -> SystemOutput:
         """Run any final optimisation and return the estimates."""
+
+    def estimate_so_far(self) -> Trajectory | None:
+        """The trajectory of the frames processed so far in the system's current estimate, at
+        their depth instants, or None where there is none yet (default: None, no live ATE)."""
+        return None
+
+    def progress_counters(self) -> dict[str, float]:
+        """Counters for live monitoring (keyframes, loops, lost frames, ...) by name (default: none)."""
+        return {}
 
 
 @dataclass

@@ -1,7 +1,10 @@
 """The SLAM systems torchslam ships, looked up by name.
 
-Each entry names the module that defines the system; a module that is not part of this
-installation is simply not available, and ``run`` says so instead of pretending.
+Each entry names the module that defines the system and the capabilities the application
+switches on (whether it runs in lockstep); a module that is not part of this installation is
+simply not available, and ``run`` says so instead of pretending. Code outside ``systems/``
+reaches a system through this table, not by importing it (the few system-specific exceptions
+are listed in ``tests/test_layers.py``).
 """
 
 from __future__ import annotations
@@ -9,12 +12,12 @@ from __future__ import annotations
 import importlib
 import importlib.util
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, NamedTuple
 
 from ..errors import ConfigError
 
-__all__ = ["KNOWN_SYSTEMS", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
+__all__ = ["DEFAULT_SYSTEM", "KNOWN_SYSTEMS", "SystemEntry", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,9 @@ class SystemSpec:
         build: ``build(config, device, monitor) -> SlamSystem``.
         memory: ``memory(config, camera, batch) -> {part: (bytes, settings behind it)}``, the
             system's own peak-memory parts beyond the input images (``systems.memory``), or None.
+        lockstep: the system runs in ``systems.lockstep.run_lockstep`` (a group of sequences
+            advancing one frame each per step), which ``torchslam batch`` uses for B > 1.
+            ``get_system`` sets it where the system's registry entry declares it.
     """
 
     name: str
@@ -35,13 +41,37 @@ class SystemSpec:
     config_cls: type
     build: Callable[..., Any]
     memory: Callable[..., dict[str, tuple[int, str]]] | None = None
+    lockstep: bool = False
 
 
-# name -> (module, attribute holding its SystemSpec, what it is)
-KNOWN_SYSTEMS: dict[str, tuple[str, str, str]] = {
-    "nislam": ("torchslam.systems.nislam", "SPEC", "NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators"),
-    "gcslam": ("torchslam.systems.gcslam", "SPEC", "GC-SLAM: ORB/dense registration with FastGO global optimisation"),
+class SystemEntry(NamedTuple):
+    """Where a system lives and what it can do.
+
+    Attributes:
+        module: the module that defines it.
+        attr: the module attribute holding its ``SystemSpec``.
+        description: what it is, for messages.
+        lockstep: it runs in ``systems.lockstep.run_lockstep`` (see ``SystemSpec.lockstep``).
+    """
+
+    module: str
+    attr: str
+    description: str
+    lockstep: bool = False
+
+
+KNOWN_SYSTEMS: dict[str, SystemEntry] = {
+    "nislam": SystemEntry(
+        "torchslam.systems.nislam", "SPEC", "NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators",
+        lockstep=True,
+    ),
+    "gcslam": SystemEntry(
+        "torchslam.systems.gcslam", "SPEC", "GC-SLAM: ORB/dense registration with FastGO global optimisation", lockstep=True
+    ),
 }
+
+# What ``torchslam run`` and ``torchslam batch`` run without ``--system``.
+DEFAULT_SYSTEM = "nislam"
 
 
 def _module_exists(module: str) -> bool:
@@ -53,11 +83,11 @@ def _module_exists(module: str) -> bool:
 
 def available_systems() -> list[str]:
     """Names of the systems this installation can run."""
-    return [name for name, (module, _, _) in KNOWN_SYSTEMS.items() if _module_exists(module)]
+    return [name for name, entry in KNOWN_SYSTEMS.items() if _module_exists(entry.module)]
 
 
 def get_system(name: str) -> SystemSpec:
-    """Return the spec of system ``name``.
+    """Return the spec of system ``name``, with the capabilities its registry entry declares.
 
     Raises:
         ConfigError: for an unknown name, or a known system that this version does not include,
@@ -69,11 +99,12 @@ def get_system(name: str) -> SystemSpec:
         raise ConfigError(f"--system {name!r}: unknown system; available systems: {listing}")
     if name not in avail:
         raise ConfigError(
-            f"--system {name!r}: {KNOWN_SYSTEMS[name][2]} is not implemented in this version of torchslam; "
+            f"--system {name!r}: {KNOWN_SYSTEMS[name].description} is not implemented in this version of torchslam; "
             f"available systems: {listing}"
         )
-    module, attr, _ = KNOWN_SYSTEMS[name]
-    return getattr(importlib.import_module(module), attr)
+    entry = KNOWN_SYSTEMS[name]
+    spec: SystemSpec = getattr(importlib.import_module(entry.module), entry.attr)
+    return replace(spec, lockstep=True) if entry.lockstep and not spec.lockstep else spec
 
 
 def spec_for_config(cfg: Any) -> SystemSpec:
