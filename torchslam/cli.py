@@ -89,7 +89,8 @@ def _cmd_run(args) -> int:
         from tqdm import tqdm
 
         def progress(frames):
-            return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False)
+            # disable=None: no bar when stderr is not a terminal (CI logs, redirected output)
+            return tqdm(frames, desc=f"{args.system}", unit="frame", leave=False, disable=None)
 
     from .app.runfolder import OutputWriteError
 
