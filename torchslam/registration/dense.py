@@ -88,6 +88,7 @@ from ..geometry import (
     se3_exp,
     undistorted_rays,
 )
+from ..optim import solve_pair_steps
 
 __all__ = [
     "DenseConfig",
@@ -675,16 +676,6 @@ def _normal_equations(
     return G[:, :6, :6], G[:, :6, 6]
 
 
-def _solve(H: Tensor, g: Tensor) -> tuple[Tensor, Tensor]:
-    """Gauss-Newton steps ``-H^-1 g`` (B, 6) and which pairs had a positive-definite ``H``."""
-    L, info = torch.linalg.cholesky_ex(H)
-    ok = info == 0
-    L = torch.where(ok[:, None, None], L, torch.eye(6, dtype=H.dtype, device=H.device).expand_as(L))
-    delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
-    ok = ok & torch.isfinite(delta).all(-1)
-    return torch.where(ok[:, None], delta, torch.zeros_like(delta)), ok
-
-
 # ---------------------------------------------------------------------------- correspondences
 
 
@@ -943,8 +934,9 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
             H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), e2, s, robust, cfg)
-            delta, solved = _solve(H, g)
-            step = active & solved
+            gn = solve_pair_steps(H, g)
+            delta = gn.delta
+            step = active & gn.solved
             T_prev = T
             T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
             iterations = iterations + step.to(torch.int64)

@@ -53,7 +53,7 @@ from ..features import (
     match_descriptors_batched,
 )
 from ..geometry import PinholeCamera, se3_exp, skew, umeyama_alignment, undistort_pixels
-from ..optim import RobustKernel, robust_weight
+from ..optim import RobustKernel, robust_weight, solve_pair_steps
 
 __all__ = [
     "FrameFeatures",
@@ -638,10 +638,9 @@ def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: Sparse
             -2,
         )
         g = torch.cat([(w[..., None] * r).sum(1), (w[..., None] * torch.cross(q, r, dim=-1)).sum(1)], -1)
-        L, info = torch.linalg.cholesky_ex(Hm)
-        step = -torch.cholesky_solve(g[..., None], L)[..., 0]
-        good = (info == 0) & (inl.sum(-1) >= 3) & torch.isfinite(step).all(-1)
-        step = torch.where(good[:, None], step, torch.zeros_like(step))
+        gn = solve_pair_steps(Hm, g)
+        good = gn.solved & (inl.sum(-1) >= 3)
+        step = torch.where(good[:, None], gn.delta, torch.zeros_like(gn.delta))
         T = se3_exp(step) @ T
     inl, r = _inliers_at(p_i, p_j, mask, T, cfg.inlier_threshold)
     num = inl.sum(-1)
