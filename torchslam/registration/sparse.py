@@ -107,9 +107,9 @@ class SparseConfig:
         min_depth: keypoints with depth below this (metres) get no 3-D point.
         max_depth: keypoints with depth above this (metres) get no 3-D point.
         seed: base seed of the random choices when no generator is given.
-        match_backend: ``auto`` matches each pair with OpenCV on the CPU (measured about five
-            times faster than the batched torch kernel for 5 pairs of 2000 descriptors on a
-            2-core CPU) and all pairs at once in torch elsewhere; ``opencv`` or ``torch`` force one.
+        match_backend: ``auto`` matches each pair with OpenCV on the CPU (faster there than the
+            batched torch kernel for the few pairs of one step) and all pairs at once in torch
+            elsewhere; ``opencv`` or ``torch`` force one.
     """
 
     max_distance: int = 50
@@ -265,7 +265,7 @@ def frame_features(
         rays: optional (H*W, 2) undistorted normalised rays of every pixel
             (:func:`~torchslam.geometry.undistorted_rays` of ``camera``, computed once per
             camera); the keypoints' rays are then interpolated bilinearly from it instead of
-            inverting the distortion per keypoint (same rays to ~1e-7, several ms faster).
+            inverting the distortion per keypoint (same rays to ~1e-7, and cheaper).
 
     Returns:
         The frame's features (K may be 0 for an image without corners).

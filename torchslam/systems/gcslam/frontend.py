@@ -97,7 +97,8 @@ class TrackingFrontend:
         Args:
             cfg: GC-SLAM settings.
             camera: the sequence's camera.
-            rays: (H, W, 3) undistorted viewing rays of a camera with distortion, else None.
+            rays: (H*W, 2) undistorted normalised rays (:func:`~torchslam.geometry.undistorted_rays`)
+                of a camera with distortion, else None.
             generator: the tracker's source of RANSAC seeds (shared with relocalisation).
         """
         self.cfg = cfg

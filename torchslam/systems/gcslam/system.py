@@ -28,6 +28,11 @@ pose of the last tracked frame and is counted as lost; after ``max_lost`` lost f
 the next frame with enough depth starts a new keyframe with no link, which FastGO gauges on its
 own until a loop closure reconnects it.
 
+Where things are: the settings in :mod:`.config`, the two front-ends (one interface, chosen
+once in ``start``) in :mod:`.frontend`, the optimisation side in :mod:`.optimizer`; this module
+holds the tracker, its frame bookkeeping and the lockstep steps (:func:`track_frames`,
+:func:`insert_keyframes`).
+
 Convention:
     The world is the first keyframe's camera frame (FastGO holds keyframe 0 fixed at the
     identity); trajectory, keyframes and ``map.ply`` (the keyframes' coloured depth points in
@@ -63,6 +68,7 @@ from .optimizer import Anchor, KeyframeEvent, Optimizer, Worker
 __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]
 
 logger = logging.getLogger(__name__)
+
 
 class _Stopwatch:
     """Per-stage wall time of one ``track`` call: each lap ends a stage and starts the next."""
@@ -261,7 +267,7 @@ class GCSlam:
         sample = sample[valid[sample]]
         # Their pixels as ``_displacement`` projects them (pinhole, along the undistorted rays),
         # so the displacement is exactly 0 at the keyframe's own pose even with lens distortion
-        # (the raw pixel grid differs from that by ~5 px on average on TUM fr1).
+        # (the raw pixel grid differs from that by pixels under strong distortion).
         pix = project_points(points[sample][None], self.intrinsics)[0][0]
         m = idx[:: cfg.map_stride, :: cfg.map_stride].reshape(-1)
         m = m[valid[m]]
