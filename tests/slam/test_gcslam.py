@@ -5,18 +5,23 @@ import dataclasses
 import pytest
 import torch
 
-from torchslam.config import config_from_dict, load_config
+from torchslam.config import config_from_dict, config_to_dict, load_config
 from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
-from torchslam.errors import ConfigError
+from torchslam.errors import ConfigError, TorchSlamError
 from torchslam.eval import ate
 from torchslam.fastgo import PairStats
 from torchslam.fastgo.synthetic import make_correspondences
 from torchslam.geometry import se3_exp, se3_inverse
 from torchslam.systems import run_sequence
-from torchslam.systems.gcslam import system as gc
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+from torchslam.systems.gcslam import frontend as fe
+from torchslam.systems.gcslam import optimizer as go
+from torchslam.systems.gcslam import system as gc
+from torchslam.systems.gcslam.config import Frontend
+from torchslam.systems.monitor import Monitor
+from torchslam.registration.sparse import FrameFeatures
 
 from ..conftest import REPO_ROOT
 
@@ -28,6 +33,15 @@ def _run(seq, **cfg):
     result = run_sequence(GCSlam(cfg), seq)
     out = result.output
     return result, ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
+
+
+def test_frontend_option_is_an_enum_that_takes_the_strings():
+    assert GCSlamConfig(frontend="dense").frontend is Frontend.DENSE
+    assert GCSlamConfig(frontend="Sparse").frontend is Frontend.SPARSE
+    assert config_from_dict(GCSlamConfig, {"frontend": "dense"}) == GCSlamConfig(frontend=Frontend.DENSE)
+    assert config_to_dict(GCSlamConfig(frontend="dense"))["frontend"] == "dense"
+    # One front-end object per option, both with the same interface.
+    assert {k: fe.frontend_class(k).kind for k in Frontend} == {k: k for k in Frontend}
 
 
 def test_yaml_defaults_equal_code_defaults():
@@ -86,18 +100,18 @@ def _optimizer_with_route(n=8):
     k = torch.arange(n, dtype=torch.float64)
     xi = torch.stack([0.3 * k, 0.05 * k, torch.zeros_like(k), torch.zeros_like(k), 0.1 * k, torch.zeros_like(k)], -1)
     T_gt = se3_exp(xi)
-    opt = gc._Optimizer(GCSlamConfig(threaded=False), gc.Monitor())
-    feats = gc.FrameFeatures(torch.zeros(0, 2), torch.zeros(0, 32, dtype=torch.uint8), torch.zeros(0, 3, dtype=torch.float64),
+    opt = go.Optimizer(GCSlamConfig(threaded=False), Monitor())
+    feats = FrameFeatures(torch.zeros(0, 2), torch.zeros(0, 32, dtype=torch.uint8), torch.zeros(0, 3, dtype=torch.float64),
                              torch.zeros(0, dtype=torch.bool))
     pairs = torch.stack([torch.arange(n - 1), torch.arange(1, n)], -1)
     p_i, p_j = make_correspondences(T_gt, pairs, 50, 0.0, torch.Generator().manual_seed(0))
     for k in range(n):
         if k == 0:
-            ev = gc._KeyframeEvent(0, None, None, None, feats, None)
+            ev = go.KeyframeEvent(0, None, None, None, feats, None)
         else:
             stats = PairStats.from_padded(p_i[k - 1 : k], p_j[k - 1 : k])
-            ev = gc._KeyframeEvent(k, k - 1, se3_inverse(T_gt[k - 1]) @ T_gt[k], stats, feats, None)
-        opt.insert(ev)
+            ev = go.KeyframeEvent(k, k - 1, se3_inverse(T_gt[k - 1]) @ T_gt[k], stats, feats, None)
+        gc.insert_keyframe(opt, ev)
     return opt, T_gt
 
 
@@ -120,14 +134,14 @@ def test_planted_false_loop_is_rejected_and_true_loop_accepted(monkeypatch):
         return register
 
     T_0k = se3_inverse(T_gt[0]) @ T_gt[n - 1]
-    monkeypatch.setattr(gc, "register_sparse_batch", fake_registration(T_0k, torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)))
-    opt._close_loops(n - 1, [0])
+    monkeypatch.setattr(go, "register_sparse_batch", fake_registration(T_0k, torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)))
+    opt.close_loops(n - 1, [0])
     assert opt.loops == {"candidates": 1, "registered": 1, "accepted": 0, "rejected": 1}
     torch.testing.assert_close(torch.stack(opt.T_wk), before, rtol=0, atol=0)
     assert "loop" not in opt.pair_kind
 
-    monkeypatch.setattr(gc, "register_sparse_batch", fake_registration(T_0k, torch.zeros(3, dtype=torch.float64)))
-    opt._close_loops(n - 1, [0])
+    monkeypatch.setattr(go, "register_sparse_batch", fake_registration(T_0k, torch.zeros(3, dtype=torch.float64)))
+    opt.close_loops(n - 1, [0])
     assert opt.loops["accepted"] == 1 and opt.pair_kind.count("loop") == 1
     torch.testing.assert_close(torch.stack(opt.T_wk), T_gt, rtol=0, atol=1e-8)
 
@@ -207,7 +221,7 @@ def test_lost_frames_are_counted_apart_from_tracked_ones(tmp_path):
 
 
 def test_bad_config_values_name_the_key():
-    with pytest.raises(ConfigError, match="frontend"):
+    with pytest.raises(ConfigError, match="frontend: unknown 'icp'; valid: sparse, dense"):
         GCSlamConfig(frontend="icp")
     with pytest.raises(ConfigError, match="keyframe_displacement"):
         config_from_dict(GCSlamConfig, {"keyframe_displacement": 0})
@@ -218,15 +232,15 @@ def test_bad_config_values_name_the_key():
 @pytest.mark.parametrize("threaded", [True, False])
 def test_optimiser_failure_is_reported_not_lost(monkeypatch, threaded):
     seq = generate_sequence(SyntheticConfig(frames=30, trajectory="orbit", seed=7, **SMALL))
-    real = gc._Optimizer._begin
+    real = go.Optimizer.begin
 
     def begin(self, ev):
         if ev.kf == 2:
             raise RuntimeError("planted optimiser failure")
         return real(self, ev)
 
-    monkeypatch.setattr(gc._Optimizer, "_begin", begin)
-    with pytest.raises((RuntimeError, gc.TorchSlamError), match="planted optimiser failure"):
+    monkeypatch.setattr(go.Optimizer, "begin", begin)
+    with pytest.raises((RuntimeError, TorchSlamError), match="planted optimiser failure"):
         run_sequence(GCSlam(GCSlamConfig(threaded=threaded)), seq)
 
 

@@ -1,5 +1,5 @@
 """Batched Gauss-Newton / Levenberg-Marquardt machinery, block-sparse solves, robust kernels and
-the log-space parametrisation of learned positive values."""
+the per-pair 6x6 Gauss-Newton solve and the log-space parametrisation of learned positive values."""
 
 from .blocksparse import (
     BlockCholeskyFactor,
@@ -12,6 +12,7 @@ from .blocksparse import (
     solve_block_sparse,
 )
 from .lm import LMConfig, LMResult, levenberg_marquardt_se3
+from .pairsolve import PairStep, solve_pair_steps
 from .positive import positive_parameter, positive_value
 from .robust import RobustKernel, robust_cost, robust_weight
 
@@ -21,6 +22,7 @@ __all__ = [
     "BlockSparseMatrix",
     "LMConfig",
     "LMResult",
+    "PairStep",
     "RobustKernel",
     "SolverMethod",
     "analyze",
@@ -32,4 +34,5 @@ __all__ = [
     "robust_cost",
     "robust_weight",
     "solve_block_sparse",
+    "solve_pair_steps",
 ]

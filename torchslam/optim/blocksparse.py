@@ -437,8 +437,8 @@ def analyze(
 
     ``"band"`` (default): reverse Cuthill-McKee order cut into supernodes of ``leaf_size``
     consecutive nodes. Pose graphs along a route (odometry chain plus loops to nearby
-    keyframes) keep a narrow profile in this order; on the FastGO benchmark graphs its factor
-    needs about 25 % fewer flops than nested dissection, with a cheaper analysis.
+    keyframes) keep a narrow profile in this order, so its factor has little fill and its
+    analysis is cheaper than nested dissection's.
     ``"nested"``: nested dissection; each connected part larger than ``leaf_size`` nodes is
     split by a breadth-first level set from a pseudo-peripheral node; the separator becomes a
     supernode eliminated after both halves. Connected parts of at most ``leaf_size`` nodes are

@@ -56,8 +56,9 @@ Method, for B pairs at once:
    depth of ``T_ij p_j``) pairs ``points_j = p_j`` with ``points_i = Z_i(w) ray(w)``: the point
    back-projected from the *bilinearly* interpolated depth of frame i at the landing position
    (so ``points_i`` lies on the viewing ray of ``T_ij p_j``). At most ``max_correspondences`` are
-   kept, evenly spread in raster order (deterministic); each has weight ``1 / z_j^2`` (issue 5),
-   ``z_j`` the depth of ``p_j``. They are summarised as :class:`~torchslam.fastgo.PairStats`.
+   kept, evenly spread in raster order (deterministic); each has weight ``1 / z_j^2``
+   (``z_j`` the depth of ``p_j``: depth noise grows with depth). They are summarised as
+   :class:`~torchslam.fastgo.PairStats`.
 
 Convention:
     ``T_ij`` (..., 4, 4) float64 maps frame-j points into frame i: ``p_i = T_ij p_j``; i is the
@@ -88,6 +89,7 @@ from ..geometry import (
     se3_exp,
     undistorted_rays,
 )
+from ..optim import solve_pair_steps
 
 __all__ = [
     "DenseConfig",
@@ -145,12 +147,11 @@ class DenseConfig:
         iterations: maximum Gauss-Newton iterations per level, coarse to fine (``levels`` values).
         geometric_weight: relative weight ``lambda`` of the geometric term. Both terms are
             divided by their own robust scale first, so it is dimensionless (1 = equal weight of
-            a one-sigma photometric and a one-sigma depth error). 2 was the best of 0, 0.3, 1, 2
-            and 3 over 40 fr1/xyz pairs (5 and 10 frames apart).
+            a one-sigma photometric and a one-sigma depth error).
         geometric_depth_power: ``p`` of the depth-noise model: ``r_Z`` is divided by
             ``(z / 1 m)^p`` before its robust scale is estimated (Kinect depth noise grows as
-            ``z^2``, so 2; 0 treats all depths alike). Far points then no longer dominate the
-            geometric term; on fr1/xyz this removed the gross failures of fast-motion pairs.
+            ``z^2``, so 2; 0 treats all depths alike), so that far points do not dominate the
+            geometric term.
         robust: ``"student_t"`` (DVO) or ``"huber"``.
         student_t_dof: degrees of freedom ``nu`` of the t-distribution (DVO: 5).
         huber_k: Huber threshold in units of the scale ``sigma``.
@@ -168,13 +169,11 @@ class DenseConfig:
         min_correspondences: a pair with fewer correspondences is reported as failed.
         finest_pixel_step: at the working resolution the Gauss-Newton iterations use only the
             pixels of j with ``(row + column) % step == 0`` (2: a quincunx, half the pixels; 1:
-            all); coarser levels and the correspondences use every pixel. With 2, GC-SLAM's ATE
-            was 1.319 / 1.862 / 2.459 cm on fr1/xyz, 7-Scenes and HoloLens against
-            1.320 / 1.856 / 2.715 cm with every pixel, at half the cost of the finest iterations.
+            all); coarser levels and the correspondences use every pixel. 2 halves the cost of
+            the finest iterations.
         tol: a pair stops at a level when its step's twist norm is below this (metres/radians).
-            The IRLS steps shrink only by about half per iteration: the default 1e-4 (0.1 mm)
-            saves about a quarter of the iterations of 1e-6 (14.6 against 20.0 per fr1/xyz
-            pair), with ATE changes below 0.005 cm on fr1/xyz, 7-Scenes and HoloLens.
+            The IRLS steps shrink only by about half per iteration, so a tighter tolerance buys
+            many iterations for sub-millimetre changes; the default is 1e-4 (0.1 mm).
     """
 
     width: int = 320
@@ -675,16 +674,6 @@ def _normal_equations(
     return G[:, :6, :6], G[:, :6, 6]
 
 
-def _solve(H: Tensor, g: Tensor) -> tuple[Tensor, Tensor]:
-    """Gauss-Newton steps ``-H^-1 g`` (B, 6) and which pairs had a positive-definite ``H``."""
-    L, info = torch.linalg.cholesky_ex(H)
-    ok = info == 0
-    L = torch.where(ok[:, None, None], L, torch.eye(6, dtype=H.dtype, device=H.device).expand_as(L))
-    delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
-    ok = ok & torch.isfinite(delta).all(-1)
-    return torch.where(ok[:, None], delta, torch.zeros_like(delta)), ok
-
-
 # ---------------------------------------------------------------------------- correspondences
 
 
@@ -943,8 +932,9 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
             H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), e2, s, robust, cfg)
-            delta, solved = _solve(H, g)
-            step = active & solved
+            gn = solve_pair_steps(H, g)
+            delta = gn.delta
+            step = active & gn.solved
             T_prev = T
             T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
             iterations = iterations + step.to(torch.int64)

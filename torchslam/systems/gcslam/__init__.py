@@ -1,5 +1,10 @@
-"""GC-SLAM: sparse or dense registration with FastGO global optimisation (see ``system``)."""
+"""GC-SLAM: sparse or dense registration with FastGO global optimisation.
 
-from .system import SPEC, GCSlam, GCSlamConfig, insert_keyframes, track_frames
+``config`` holds the settings, ``frontend`` the sparse and dense front-ends, ``optimizer`` the
+FastGO / loop-closure side and ``system`` the tracker (:class:`GCSlam`) and the lockstep steps.
+"""
 
-__all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframes", "track_frames"]
+from .config import Frontend, GCSlamConfig
+from .system import SPEC, GCSlam, insert_keyframe, insert_keyframes, track_frames
+
+__all__ = ["SPEC", "Frontend", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]

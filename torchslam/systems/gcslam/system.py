@@ -28,6 +28,11 @@ pose of the last tracked frame and is counted as lost; after ``max_lost`` lost f
 the next frame with enough depth starts a new keyframe with no link, which FastGO gauges on its
 own until a loop closure reconnects it.
 
+Where things are: the settings in :mod:`.config`, the two front-ends (one interface, chosen
+once in ``start``) in :mod:`.frontend`, the optimisation side in :mod:`.optimizer`; this module
+holds the tracker, its frame bookkeeping and the lockstep steps (:func:`track_frames`,
+:func:`insert_keyframes`).
+
 Convention:
     The world is the first keyframe's camera frame (FastGO holds keyframe 0 fixed at the
     identity); trajectory, keyframes and ``map.ply`` (the keyframes' coloured depth points in
@@ -38,377 +43,55 @@ from __future__ import annotations
 
 import bisect
 import logging
-import queue
-import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
-from ...errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, TorchSlamError, check_limits
-from ...fastgo import (
-    FastGOConfig,
-    FastGOProblem,
-    PairStats,
-    accept_loop_closures,
-    optimize,
-    optimize_batch,
-)
-from ...features import ORBConfig
-from ...geometry import (
-    PinholeCamera,
-    backproject_depth,
-    project_points,
-    se3_inverse,
-    undistorted_rays,
-)
-from ...loop import MILDConfig, MILDDatabase
-from ...registration.dense import DenseConfig, prepare_dense_frame, register_dense_frames
-from ...registration.sparse import (
-    FrameFeatures,
-    SparseConfig,
-    frame_features,
-    register_sparse,
-    register_sparse_batch,
-)
+from ...errors import ConfigError, ShapeError, TorchSlamError
+from ...fastgo import PairStats, optimize_batch
+from ...geometry import PinholeCamera, backproject_depth, project_points, se3_inverse, undistorted_rays
+from ...registration.dense import DenseFrame
+from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import StepReport, SystemOutput, add_stage_ms, empty_output, frame_poses, resample_poses
-from ..monitor import Monitor
 from ..framelog import voxel_downsample
-from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
+from ..monitor import Monitor
 from ..registry import SystemSpec
+from .config import GCSlamConfig
+from .frontend import PreparedFrame, TrackingFrontend, frontend_class, make_frontend
+from .optimizer import Anchor, KeyframeEvent, Optimizer, Worker
 
-__all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframes", "track_frames"]
+__all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]
 
 logger = logging.getLogger(__name__)
 
-FRONTENDS = ("sparse", "dense")
 
+class _Stopwatch:
+    """Per-stage wall time of one ``track`` call: each lap ends a stage and starts the next."""
 
-@dataclass(frozen=True)
-class GCSlamConfig:
-    """Settings of GC-SLAM. Defaults follow the authors' released code where the paper is silent.
+    def __init__(self, stage_ms: dict[str, float]) -> None:
+        self.stage_ms = stage_ms
+        self.t0 = time.perf_counter()
 
-    Attributes:
-        frontend: ``sparse`` (ORB registration) or ``dense`` (photometric + geometric).
-        orb_features: ORB features per frame (released code: 2000).
-        orb_scale: ORB pyramid scale factor (1.2).
-        orb_levels: ORB pyramid levels (8).
-        sparse: sparse registration settings (isometry filter, RANSAC, refinement).
-        dense: dense registration settings (320x240 pyramid).
-        keyframe_displacement: a frame becomes a keyframe when the keyframe's points move by
-            more than this fraction of the focal length on average (released code: 0.1).
-        keyframe_sample_stride: pixel stride of the keyframe points used for that test.
-        mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
-        loops: look for loop closures at every new keyframe.
-        fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
-        loop_iterations: iterations of the trial optimisation that tests loop candidates.
-        loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
-            by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
-        loop_slack_m: absolute slack of that test, metres. Real registrations are biased by
-            millimetres (colour/depth timing, rolling shutter), so a true loop over a chain of
-            such pairs raises their RMS error by 1-2 mm: on TUM fr1/xyz the 5 % rule alone
-            rejected 34 of 59 true loops (ATE 5.5 cm instead of 2.3 cm). A false loop moves the
-            error by centimetres.
-        final_iterations: iterations of one last FastGO run over all keyframes at the end of
-            the sequence (0: keep the per-keyframe result).
-        threaded: run optimisation in a background thread (False: inline, for tests).
-        relocalize_keyframes: recent keyframes tried when a frame cannot be registered.
-        max_lost: lost frames in a row before a new, unlinked keyframe is started.
-        min_valid_depth: frames with fewer valid depth pixels are not tracked.
-        interpolation_max_gap: largest gap between depth instants across which the trajectory is
-            interpolated to the colour timestamps, seconds.
-        map_stride: pixel stride of the keyframe clouds in ``map.ply``.
-        map_voxel: voxel size of ``map.ply``, metres.
-        max_depth: depth beyond this is ignored for the map, metres.
-    """
-
-    frontend: str = "sparse"
-    orb_features: int = 2000
-    orb_scale: float = 1.2
-    orb_levels: int = 8
-    sparse: SparseConfig = field(default_factory=SparseConfig)
-    dense: DenseConfig = field(default_factory=DenseConfig)
-    keyframe_displacement: float = 0.1
-    keyframe_sample_stride: int = 16
-    mild: MILDConfig = field(default_factory=MILDConfig)
-    loops: bool = True
-    fastgo_iterations: int = 3
-    loop_iterations: int = 10
-    loop_threshold: float = 0.05
-    loop_slack_m: float = 0.003
-    final_iterations: int = 10
-    threaded: bool = True
-    relocalize_keyframes: int = 5
-    max_lost: int = 10
-    min_valid_depth: int = 1000
-    interpolation_max_gap: float = 0.1
-    map_stride: int = 4
-    map_voxel: float = 0.01
-    max_depth: float = 5.0
-
-    LIMITS: ClassVar[dict[str, Limit]] = {
-        "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
-        "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
-        "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
-        "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
-        "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
-    }
-
-    def __post_init__(self) -> None:
-        if self.frontend not in FRONTENDS:
-            raise ConfigError(f"frontend: {self.frontend!r} is not one of {list(FRONTENDS)}")
-        check_limits(self)
-
-    def orb(self) -> ORBConfig:
-        return ORBConfig(n_features=self.orb_features, scale_factor=self.orb_scale, n_levels=self.orb_levels)
-
-
-@dataclass
-class _KeyframeEvent:
-    """What the tracker hands the optimiser for one new keyframe."""
-
-    kf: int  # keyframe id (0, 1, ...)
-    reference: int | None  # keyframe it was registered to, None for an unlinked keyframe
-    T_ref_kf: Tensor | None  # (4, 4) float64 relative pose, p_ref = T p_kf
-    stats: PairStats | None  # statistics of that registration's correspondences
-    features: FrameFeatures  # ORB features of the keyframe (for MILD and loop registration)
-    anchor: tuple[int, Tensor] | None = None  # unlinked keyframe: (keyframe, pose relative to it) of the last tracked frame
-    frame_index: int = 0  # the keyframe's sequence frame index (the TensorBoard step)
-
-
-class _Optimizer:
-    """Keyframe poses, pairs, the MILD database and FastGO: the optimisation thread's state.
-
-    Poses and pair statistics live on the CPU in float64 whatever device the front-end uses
-    (FastGO's cost does not grow with images, and float64 is the back-end's precision).
-    """
-
-    def __init__(self, cfg: GCSlamConfig, monitor: Monitor) -> None:
-        self.cfg = cfg
-        self.monitor = monitor
-        self.T_wk: list[Tensor] = []
-        self.pairs: list[tuple[int, int]] = []
-        self.stats: list[PairStats] = []
-        self.pair_kind: list[str] = []  # "odometry", "relocalization" or "loop"
-        self.features: list[FrameFeatures] = []
-        self.mild = MILDDatabase(cfg.mild)
-        self.loops = {"candidates": 0, "registered": 0, "accepted": 0, "rejected": 0}
-        self.stage_ms: dict[str, float] = {}
-        self.fastgo_ms: list[float] = []
-        self.generator = torch.Generator().manual_seed(cfg.sparse.seed + 1)
-
-    def _add_ms(self, stage: str, t0: float) -> float:
-        return add_stage_ms(self.stage_ms, stage, t0)
-
-    def _fastgo_config(self, iterations: int) -> FastGOConfig:
-        return FastGOConfig(iterations=iterations)
-
-    def _problem(self) -> tuple[Tensor, Tensor, PairStats]:
-        T = torch.stack(self.T_wk)
-        if not self.pairs:
-            return T, torch.zeros(0, 2, dtype=torch.int64), PairStats.empty(0)
-        return T, torch.tensor(self.pairs, dtype=torch.int64), PairStats.cat(self.stats)
-
-    def insert(self, ev: _KeyframeEvent) -> None:
-        """Take one new keyframe: pose, odometry pair, MILD, FastGO, loop closures."""
-        (error,) = insert_keyframes([self], [ev])
-        if error is not None:
-            raise error
-
-    def _begin(self, ev: _KeyframeEvent) -> list[int]:
-        """Add the keyframe and its odometry pair; query and update MILD; return loop candidates."""
-        cfg = self.cfg
-        if ev.kf != len(self.T_wk):
-            raise TorchSlamError(f"keyframe {ev.kf} inserted out of order (expected {len(self.T_wk)})")
-        if ev.reference is None:
-            # An unlinked keyframe starts where the last tracked frame was; that guess only
-            # matters until a loop closure links it to the rest.
-            T0 = torch.eye(4, dtype=torch.float64)
-            if ev.anchor is not None:
-                T0 = self.T_wk[ev.anchor[0]] @ ev.anchor[1].to(torch.float64)
-            self.T_wk.append(T0)
-        else:
-            self.T_wk.append(self.T_wk[ev.reference] @ ev.T_ref_kf.to(torch.float64))
-            self.pairs.append((ev.reference, ev.kf))
-            self.stats.append(ev.stats.to("cpu", torch.float64))
-            self.pair_kind.append("odometry")
-        self.features.append(ev.features)
-        t0 = time.perf_counter()
-        candidates: list[int] = []
-        if cfg.loops and len(self.mild):
-            ids, _ = self.mild.query(ev.features.descriptors)
-            candidates = [int(c) for c in ids if int(c) != ev.reference]
-        self.mild.add(ev.kf, ev.features.descriptors)
-        self._add_ms("loop_detection", t0)
-        return candidates
-
-    def _optimized(self, res, frame_index: int, ms: float) -> None:
-        """Take the result of the per-keyframe FastGO run (``ms``: its share of the time)."""
-        self.T_wk = list(res.T_wc.unbind(0))
-        self.fastgo_ms.append(ms)
-        self.stage_ms["fastgo"] = self.stage_ms.get("fastgo", 0.0) + ms
-        self.monitor.scalar("optimization/fastgo_ms", ms, frame_index)
-
-    def _close_loops(self, kf: int, candidates: list[int], frame_index: int = 0) -> None:
-        cfg = self.cfg
-        t0 = time.perf_counter()
-        self.loops["candidates"] += len(candidates)
-        res = register_sparse_batch([self.features[c] for c in candidates], [self.features[kf]] * len(candidates), cfg.sparse, self.generator)
-        ok = [b for b in range(len(candidates)) if bool(res.success[b])]
-        t0 = self._add_ms("loop_registration", t0)
-        if not ok:
-            return
-        self.loops["registered"] += len(ok)
-        # All verified candidates are tested together; if that is rejected, each on its own, so
-        # one false candidate does not take the true ones down with it.
-        trials = [ok] if len(ok) == 1 else [ok] + [[b] for b in ok]
-        for k, group in enumerate(trials):
-            T, pairs, stats = self._problem()
-            loop_pairs = torch.tensor([(candidates[b], kf) for b in group], dtype=torch.int64)
-            loop_stats = res.stats[torch.tensor(group, device=res.stats.device)].to("cpu", torch.float64)
-            decision = accept_loop_closures(
-                T, pairs, stats, loop_pairs, loop_stats, fixed=0, threshold=float("inf"),
-                config=self._fastgo_config(cfg.loop_iterations),
-            )
-            rms_before, rms_after = decision.cost_before**0.5, decision.cost_after**0.5
-            accepted = rms_after <= rms_before * (1.0 + cfg.loop_threshold) + cfg.loop_slack_m
-            if accepted:
-                self.T_wk = list(decision.result.T_wc.unbind(0))
-                for b in group:
-                    self.pairs.append((candidates[b], kf))
-                    self.pair_kind.append("loop")
-                self.stats.append(loop_stats)
-                self.loops["accepted"] += len(group)
-                self.monitor.scalar("progress/loops_accepted", self.loops["accepted"], frame_index)
-                logger.debug("keyframe %d: loop(s) to %s accepted (RMS %.4f -> %.4f m)", kf, [candidates[b] for b in group],
-                             rms_before, rms_after)
-                if k == 0:
-                    break
-            else:
-                if k > 0 or len(group) == 1:
-                    self.loops["rejected"] += len(group)
-        self._add_ms("loop_acceptance", t0)
-
-    def finish(self) -> None:
-        if self.cfg.final_iterations and self.pairs:
-            t0 = time.perf_counter()
-            T, pairs, stats = self._problem()
-            res = optimize(T, pairs, stats, fixed=0, config=self._fastgo_config(self.cfg.final_iterations))
-            self.T_wk = list(res.T_wc.unbind(0))
-            self._add_ms("fastgo_final", t0)
-
-
-def insert_keyframes(optimizers: list[_Optimizer], events: list[_KeyframeEvent]) -> list[Exception | None]:
-    """Insert one new keyframe into each of several optimisers (one per sequence) at once.
-
-    Each optimiser adds its keyframe and queries MILD; then ONE FastGO call (``optimize_batch``)
-    runs ``fastgo_iterations`` over all their pose graphs together (each with its own damping
-    and convergence); finally each closes its loops. With one optimiser this is exactly the
-    per-keyframe step of a single sequence; with several each gets the result it gets alone,
-    since the problems of a batch do not interact.
-
-    Returns:
-        Per optimiser the exception that stopped its step (its state is then undefined), or None.
-        A joint FastGO call that raises is repeated one problem at a time to place the failure.
-    """
-    errors: list[Exception | None] = [None] * len(optimizers)
-    candidates: list[list[int]] = [[] for _ in optimizers]
-    for k, (o, ev) in enumerate(zip(optimizers, events)):
-        try:
-            candidates[k] = o._begin(ev)
-        except Exception as exc:  # noqa: BLE001 - reported in the optimiser's place
-            errors[k] = exc
-    idx = [k for k, o in enumerate(optimizers) if errors[k] is None and o.pairs]
-    groups = [idx] if idx else []
-    while groups:
-        group = groups.pop(0)
-        t0 = time.perf_counter()
-        try:
-            problems = [FastGOProblem(*optimizers[k]._problem(), 0) for k in group]
-            o0 = optimizers[group[0]]
-            res = optimize_batch(problems, o0._fastgo_config(o0.cfg.fastgo_iterations))
-        except Exception as exc:  # noqa: BLE001
-            if len(group) == 1:
-                errors[group[0]] = exc
-            else:
-                groups.extend([k] for k in group)
-            continue
-        share = 1000.0 * (time.perf_counter() - t0) / len(group)
-        for j, k in enumerate(group):
-            optimizers[k]._optimized(res.problem(j), events[k].frame_index, share)
-    for k, (o, ev) in enumerate(zip(optimizers, events)):
-        if errors[k] is None and candidates[k]:
-            try:
-                o._close_loops(ev.kf, candidates[k], ev.frame_index)
-            except Exception as exc:  # noqa: BLE001
-                errors[k] = exc
-    return errors
-
-
-class _Worker:
-    """Runs an :class:`_Optimizer` in a background thread, inline, or deferred.
-
-    Deferred (lockstep runs of several sequences): new keyframes wait in ``pending`` until the
-    driver inserts those of all sequences together (:func:`track_frames`).
-    """
-
-    def __init__(self, optimizer: _Optimizer, threaded: bool, deferred: bool = False) -> None:
-        self.optimizer = optimizer
-        self.threaded = threaded and not deferred
-        self.deferred = deferred
-        self.pending: list[_KeyframeEvent] = []
-        self.error: BaseException | None = None
-        if self.threaded:
-            self.queue: queue.Queue = queue.Queue()
-            self.thread = threading.Thread(target=self._loop, name="torchslam-gcslam-optimizer", daemon=True)
-            self.thread.start()
-
-    def _loop(self) -> None:
-        while True:
-            ev = self.queue.get()
-            if ev is None:
-                return
-            if self.error is not None:
-                continue
-            try:
-                self.optimizer.insert(ev)
-            except BaseException as exc:  # noqa: BLE001 - reported to the tracking thread at the next call
-                self.error = exc
-
-    def submit(self, ev: _KeyframeEvent) -> None:
-        if self.error is not None:
-            raise TorchSlamError(f"GC-SLAM optimisation thread failed: {self.error}") from self.error
-        if self.threaded:
-            self.queue.put(ev)
-        elif self.deferred:
-            self.pending.append(ev)
-        else:
-            self.optimizer.insert(ev)
-
-    def join(self) -> None:
-        while self.pending:
-            self.optimizer.insert(self.pending.pop(0))
-        if self.threaded:
-            self.queue.put(None)
-            self.thread.join()
-        if self.error is not None:
-            raise TorchSlamError(f"GC-SLAM optimisation thread failed: {self.error}") from self.error
+    def lap(self, stage: str, exclude_s: float = 0.0) -> None:
+        """Add the time since the last lap, less ``exclude_s`` seconds, to ``stage``."""
+        self.t0 = add_stage_ms(self.stage_ms, stage, self.t0 + exclude_s)
 
 
 @dataclass
 class _TrackKeyframe:
-    """What the tracker keeps of a keyframe."""
+    """What the tracker keeps of a keyframe (a :class:`~.frontend.RegistrationTarget`)."""
 
     kf: int
     frame_index: int
     features: FrameFeatures
     sample_points: Tensor  # (S, 3) float64 keyframe-frame points for the displacement test
     sample_pixels: Tensor  # (S, 2) float64 their pixels in the keyframe
-    dense: Any | None  # the dense pyramid of the current keyframe only (dense front-end); None for older ones
+    dense: DenseFrame | None  # the dense pyramid of the current keyframe only (dense front-end); None for older ones
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
 
@@ -434,7 +117,7 @@ class GCSlam:
         self.device = torch.device(device)
         self.monitor = monitor or Monitor()
         self.deferred = deferred
-        self._worker: _Worker | None = None
+        self._worker: Worker | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, sequence: Sequence) -> None:
@@ -443,9 +126,8 @@ class GCSlam:
         self.camera: PinholeCamera = sequence.camera
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
-        self.orb_cfg = cfg.orb()
-        self.optimizer = _Optimizer(cfg, self.monitor)
-        self._worker = _Worker(self.optimizer, cfg.threaded, deferred=self.deferred)
+        self.optimizer = Optimizer(cfg, self.monitor)
+        self._worker = Worker(self.optimizer, insert_keyframe, cfg.threaded, deferred=self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
         self.frame_index: list[int] = []
         self.frame_time: list[float] = []
@@ -460,6 +142,7 @@ class GCSlam:
         self.inliers: list[int] = []
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
+        self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
         self._need_unlinked = False
         self._inline_s = 0.0
@@ -470,8 +153,9 @@ class GCSlam:
 
     # ------------------------------------------------------------------ tracking
     def track(self, frame: Frame) -> None:
+        """Register one frame to the current keyframe; make it a keyframe, relocalise it or record it."""
         cfg = self.cfg
-        t0 = time.perf_counter()
+        clock = _Stopwatch(self.stage_ms)
         self.last_frame_index = frame.index
         rgb = frame.rgb.to(self.device)
         depth = frame.depth.to(self.device)
@@ -479,50 +163,38 @@ class GCSlam:
             self.counts["no_depth"] += 1
             self._record_lost(frame)
             return
-        need_orb = cfg.frontend == "sparse" or not self.keyframes or self._need_unlinked
-        feats = self._features(rgb, depth) if need_orb else None
-        t0 = self._toc("orb_extraction", t0) if need_orb else t0
-        dense_frame = prepare_dense_frame(rgb[None], depth[None], self.camera, cfg.dense) if cfg.frontend == "dense" else None
-        if cfg.frontend == "dense":
-            t0 = self._toc("dense_preparation", t0)
-        if not self.keyframes or self._need_unlinked:
-            self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=None, T_ref=None, stats=None)
+        unlinked = not self.keyframes or self._need_unlinked
+        view = self.frontend.prepare(rgb, depth, keyframe=unlinked, lap=clock.lap)
+        if unlinked:
+            self._new_keyframe(frame, view, reference=None, T_ref=None, stats=None)
             self._need_unlinked = False
-            self._toc("keyframe_insertion", t0 + self._take_inline())
+            clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         kf = self.keyframes[-1]
-        if cfg.frontend == "sparse":
-            res = register_sparse(kf.features, feats, cfg.sparse, self.generator)
-            ok, T_kf, stats, n = bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0])
-        else:
-            res = register_dense_frames(kf.dense, dense_frame, self._last_T_kf[None], cfg.dense)
-            ok, T_kf, stats, n = bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_correspondences[0])
-        t0 = self._toc("registration", t0)
-        if not ok:
+        reg = self.frontend.register(kf, view, self._last_T_kf)
+        clock.lap("registration")
+        if not reg.ok:
             self.counts["tracking_failures"] += 1
-            self._relocalize(frame, rgb, depth, feats, dense_frame)
-            self._toc("relocalization", t0 + self._take_inline())
+            self._relocalize(frame, view)
+            clock.lap("relocalization", exclude_s=self._take_inline())
             return
         self.lost_in_row = 0
-        self.inliers.append(n)
-        self.monitor.scalar("tracking/correspondences", n, frame.index)
-        moved = self._displacement(kf, T_kf)
-        t0 = self._toc("keyframe_decision", t0)
+        self.inliers.append(reg.correspondences)
+        self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
+        moved = self._displacement(kf, reg.T_kf)
+        clock.lap("keyframe_decision")
         if moved > cfg.keyframe_displacement * self.camera.fx:
-            if feats is None:
-                feats = self._features(rgb, depth)
-                t0 = self._toc("orb_extraction", t0)
-            self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=kf.kf, T_ref=T_kf, stats=stats)
-            self._toc("keyframe_insertion", t0 + self._take_inline())
+            if view.features is None:
+                self.frontend.features(view)
+                clock.lap("orb_extraction")
+            self._new_keyframe(frame, view, reference=kf.kf, T_ref=reg.T_kf, stats=reg.stats)
+            clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
-        self._record(frame, kf.kf, T_kf)
+        self._record(frame, kf.kf, reg.T_kf)
 
     def _take_inline(self) -> float:
         s, self._inline_s = self._inline_s, 0.0
         return s
-
-    def _features(self, rgb: Tensor, depth: Tensor) -> FrameFeatures:
-        return frame_features(rgb, depth, self.camera, self.orb_cfg, self.cfg.sparse, rays=self.rays)
 
     def _displacement(self, kf: _TrackKeyframe, T_kf_frame: Tensor) -> float:
         """Mean pixel displacement of the keyframe's sample points seen from the frame."""
@@ -536,19 +208,19 @@ class GCSlam:
             return float("inf")
         return float((uv[0][ok] - kf.sample_pixels[ok]).norm(dim=-1).mean())
 
-    def _relocalize(self, frame: Frame, rgb: Tensor, depth: Tensor, feats: FrameFeatures | None, dense_frame) -> None:
+    def _relocalize(self, frame: Frame, view: PreparedFrame) -> None:
+        """Register a frame that failed to the recent keyframes (sparse); a match makes it a keyframe."""
         cfg = self.cfg
         recent = self.keyframes[-cfg.relocalize_keyframes:] if cfg.relocalize_keyframes else []
         if recent:
-            if feats is None:
-                feats = self._features(rgb, depth)
+            feats = self.frontend.features(view)
             res = register_sparse_batch([k.features for k in recent], [feats] * len(recent), cfg.sparse, self.generator)
             good = res.success.nonzero().flatten()
             if len(good):
                 b = int(good[torch.argmax(res.num_inliers[good])])
                 self.counts["relocalized"] += 1
                 self.lost_in_row = 0
-                self._new_keyframe(frame, rgb, depth, feats, dense_frame, reference=recent[b].kf, T_ref=res.T_ij[b],
+                self._new_keyframe(frame, view, reference=recent[b].kf, T_ref=res.T_ij[b],
                                    stats=res.stats[torch.tensor([b], device=res.stats.device)], relocalized=True)
                 return
         self._record_lost(frame)
@@ -577,10 +249,14 @@ class GCSlam:
         self.frame_T_kf.append(T)
         self._last_T_kf = T
 
-    def _new_keyframe(self, frame, rgb, depth, feats, dense_frame, reference, T_ref, stats, relocalized: bool = False) -> None:
+    def _new_keyframe(
+        self, frame: Frame, view: PreparedFrame, reference: int | None, T_ref: Tensor | None, stats: PairStats | None,
+        relocalized: bool = False,
+    ) -> None:
+        """Make the frame keyframe ``len(keyframes)``, linked to ``reference`` by ``T_ref`` and ``stats`` (or unlinked)."""
         cfg = self.cfg
-        if feats is None:
-            feats = self._features(rgb, depth)
+        feats = self.frontend.features(view)
+        rgb, depth = view.rgb, view.depth
         kid = len(self.keyframes)
         points, valid = backproject_depth(depth[None].to(torch.float64), self.intrinsics, rays=self.rays)
         points, valid = points[0], valid[0] & (points[0, :, 2] <= cfg.max_depth)
@@ -591,21 +267,21 @@ class GCSlam:
         sample = sample[valid[sample]]
         # Their pixels as ``_displacement`` projects them (pinhole, along the undistorted rays),
         # so the displacement is exactly 0 at the keyframe's own pose even with lens distortion
-        # (the raw pixel grid differs from that by ~5 px on average on TUM fr1).
+        # (the raw pixel grid differs from that by pixels under strong distortion).
         pix = project_points(points[sample][None], self.intrinsics)[0][0]
         m = idx[:: cfg.map_stride, :: cfg.map_stride].reshape(-1)
         m = m[valid[m]]
         colors = rgb.reshape(3, -1)[:, m].T.float()
         anchor = None
         if reference is None and self.frame_index:
-            anchor = (self.frame_kf[-1], self.frame_T_kf[-1].cpu())
+            anchor = Anchor(self.frame_kf[-1], self.frame_T_kf[-1].cpu())
             self.counts["unlinked_keyframes"] += 1
         if self.keyframes:
             self.keyframes[-1].dense = None  # only the current keyframe is registered against densely
         self.keyframes.append(
-            _TrackKeyframe(kid, frame.index, feats, points[sample], pix, dense_frame, points[m].float(), colors)
+            _TrackKeyframe(kid, frame.index, feats, points[sample], pix, view.dense, points[m].float(), colors)
         )
-        ev = _KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
+        ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index)
         t_submit = time.perf_counter()
         self._worker.submit(ev)
@@ -707,7 +383,7 @@ class GCSlam:
         kinds = opt.pair_kind
         fastgo = opt.fastgo_ms
         return {
-            "frontend": self.cfg.frontend,
+            "frontend": self.cfg.frontend.value,
             "threaded": self.cfg.threaded,
             "loops": dict(opt.loops),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
@@ -768,14 +444,63 @@ def track_frames(systems: list[GCSlam], frames: list[Frame], max_batch: int | No
     return StepReport(errors=errors, compute_s=compute)
 
 
-def _memory(cfg: GCSlamConfig, camera, batch: int) -> dict[str, tuple[int, str]]:
-    """The dense front-end's working pyramid (``systems.memory``); the sparse one adds nothing."""
-    if cfg.frontend != "dense":
-        return {}
-    factor = max(1, round(camera.width / cfg.dense.width))
-    working = (camera.width // factor) * (camera.height // factor)
-    return {"dense pyramid": (DENSE_BYTES_PER_WORKING_PIXEL * working * batch,
-                              f"image {camera.width}x{camera.height}, dense.width = {cfg.dense.width}")}
+def insert_keyframes(optimizers: list[Optimizer], events: list[KeyframeEvent]) -> list[Exception | None]:
+    """Insert one new keyframe into each of several optimisers (one per sequence) at once.
+
+    Each optimiser adds its keyframe and queries MILD; then ONE FastGO call (``optimize_batch``)
+    runs ``fastgo_iterations`` over all their pose graphs together (each with its own damping
+    and convergence); finally each closes its loops. With one optimiser this is exactly the
+    per-keyframe step of a single sequence; with several each gets the result it gets alone,
+    since the problems of a batch do not interact.
+
+    Returns:
+        Per optimiser the exception that stopped its step (its state is then undefined), or None.
+        A joint FastGO call that raises is repeated one problem at a time to place the failure.
+    """
+    errors: list[Exception | None] = [None] * len(optimizers)
+    candidates: list[list[int]] = [[] for _ in optimizers]
+    for k, (o, ev) in enumerate(zip(optimizers, events)):
+        try:
+            candidates[k] = o.begin(ev)
+        except Exception as exc:  # noqa: BLE001 - reported in the optimiser's place
+            errors[k] = exc
+    idx = [k for k, o in enumerate(optimizers) if errors[k] is None and o.pairs]
+    groups = [idx] if idx else []
+    while groups:
+        group = groups.pop(0)
+        t0 = time.perf_counter()
+        try:
+            problems = [optimizers[k].problem() for k in group]
+            o0 = optimizers[group[0]]
+            res = optimize_batch(problems, o0.fastgo_config(o0.cfg.fastgo_iterations))
+        except Exception as exc:  # noqa: BLE001
+            if len(group) == 1:
+                errors[group[0]] = exc
+            else:
+                groups.extend([k] for k in group)
+            continue
+        share = 1000.0 * (time.perf_counter() - t0) / len(group)
+        for j, k in enumerate(group):
+            optimizers[k].optimized(res.problem(j), events[k].frame_index, share)
+    for k, (o, ev) in enumerate(zip(optimizers, events)):
+        if errors[k] is None and candidates[k]:
+            try:
+                o.close_loops(ev.kf, candidates[k], ev.frame_index)
+            except Exception as exc:  # noqa: BLE001
+                errors[k] = exc
+    return errors
+
+
+def insert_keyframe(optimizer: Optimizer, event: KeyframeEvent) -> None:
+    """Insert one keyframe into one optimiser (:func:`insert_keyframes` with one); raise its error."""
+    (error,) = insert_keyframes([optimizer], [event])
+    if error is not None:
+        raise error
+
+
+def _memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
+    """The front-end's working memory (``systems.memory``): the dense pyramid; the sparse one adds nothing."""
+    return frontend_class(cfg.frontend).memory(cfg, camera, batch)
 
 
 SPEC = SystemSpec(

@@ -1,0 +1,61 @@
+"""The shared per-pair 6x6 Gauss-Newton solve: planted steps, failed pairs, batching, bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchslam.errors import DTypeError, ShapeError
+from torchslam.optim import solve_pair_steps
+
+TOL = {torch.float32: 1e-4, torch.float64: 1e-10}
+
+
+def _spd(B: int, dtype: torch.dtype, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(B, 6, 6, generator=g, dtype=torch.float64)
+    return (A @ A.transpose(1, 2) + 6 * torch.eye(6, dtype=torch.float64)).to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_planted_step_is_recovered(dtype):
+    H = _spd(5, dtype)
+    delta = torch.randn(5, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(dtype)
+    g = -(H @ delta[..., None])[..., 0]
+    step = solve_pair_steps(H, g)
+    assert step.solved.all()
+    torch.testing.assert_close(step.delta, delta, rtol=0, atol=TOL[dtype] * 10)
+
+
+def test_singular_and_non_finite_pairs_take_zero_steps_and_leave_others_alone():
+    H = _spd(4, torch.float64)
+    g = torch.randn(4, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    alone = solve_pair_steps(H, g)
+    H_bad = H.clone()
+    H_bad[1] = torch.zeros(6, 6, dtype=torch.float64)  # not positive definite
+    g_bad = g.clone()
+    g_bad[2, 0] = float("inf")  # a finite factor but a non-finite step
+    step = solve_pair_steps(H_bad, g_bad)
+    assert step.solved.tolist() == [True, False, False, True]
+    assert torch.equal(step.delta[1:3], torch.zeros(2, 6, dtype=torch.float64))
+    torch.testing.assert_close(step.delta[[0, 3]], alone.delta[[0, 3]], rtol=0, atol=0)
+
+
+def test_batched_equals_per_pair():
+    H = _spd(6, torch.float64, seed=3)
+    g = torch.randn(6, 6, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    step = solve_pair_steps(H, g)
+    for b in range(6):
+        one = solve_pair_steps(H[b : b + 1], g[b : b + 1])
+        torch.testing.assert_close(one.delta[0], step.delta[b], rtol=0, atol=1e-12)
+    assert solve_pair_steps(H[:0], g[:0]).delta.shape == (0, 6)
+
+
+def test_bad_input_names_the_argument():
+    H = _spd(2, torch.float64)
+    with pytest.raises(ShapeError, match=r"H: expected \(B, 6, 6\), got \(2, 5, 5\)"):
+        solve_pair_steps(H[:, :5, :5], torch.zeros(2, 6, dtype=torch.float64))
+    with pytest.raises(ShapeError, match="g: expected"):
+        solve_pair_steps(H, torch.zeros(3, 6, dtype=torch.float64))
+    with pytest.raises(DTypeError, match="H: expected float32 or float64"):
+        solve_pair_steps(H.to(torch.int64), torch.zeros(2, 6, dtype=torch.float64))

@@ -1,0 +1,57 @@
+"""The per-pair 6x6 Gauss-Newton solve that sparse and dense registration share.
+
+Each of B independent pairs has its own normal equations ``H delta = -g`` in the left twist
+``delta = (rho, phi)`` of its relative pose (``T <- se3_exp(delta) @ T``). They are solved by a
+batched Cholesky factorisation; a pair whose ``H`` is not positive definite, or whose step is not
+finite, takes a zero step and is reported as not solved, so the caller keeps its pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..errors import check_float, check_shape
+
+__all__ = ["PairStep", "solve_pair_steps"]
+
+
+@dataclass(frozen=True)
+class PairStep:
+    """Gauss-Newton steps of B pairs.
+
+    Attributes:
+        delta: (B, 6) steps ``-H^-1 g``, twists ``(rho, phi)``; 0 where not solved.
+        solved: (B,) bool, ``H`` positive definite and the step finite.
+    """
+
+    delta: Tensor
+    solved: Tensor
+
+
+def solve_pair_steps(H: Tensor, g: Tensor) -> PairStep:
+    """Solve ``H delta = -g`` for each of B pairs by Cholesky factorisation.
+
+    Args:
+        H: (B, 6, 6) symmetric Gauss-Newton matrices ``J^T W J``.
+        g: (B, 6) gradients ``J^T W r``, same dtype.
+
+    Returns:
+        PairStep: the steps, 0 for pairs whose ``H`` is not positive definite or whose step is not
+        finite (``solved`` False there).
+    """
+    dims: dict[str, int] = {}
+    check_shape(H, "B 6 6", "H", dims)
+    check_shape(g, "B 6", "g", dims)
+    check_float(H, "H")
+    check_float(g, "g")
+    L, info = torch.linalg.cholesky_ex(H)
+    solved = info == 0
+    # A failed factor is replaced by the identity so that its (discarded) solve stays finite;
+    # every pair's solve is independent of the others'.
+    L = torch.where(solved[:, None, None], L, torch.eye(6, dtype=H.dtype, device=H.device).expand_as(L))
+    delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
+    solved = solved & torch.isfinite(delta).all(-1)
+    return PairStep(torch.where(solved[:, None], delta, torch.zeros_like(delta)), solved)

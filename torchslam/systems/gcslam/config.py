@@ -1,0 +1,105 @@
+"""GC-SLAM's settings: the front-end choice, registration, keyframes, loops and FastGO."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from ...errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits, parse_choice
+from ...features import ORBConfig
+from ...loop import MILDConfig
+from ...registration.dense import DenseConfig
+from ...registration.sparse import SparseConfig
+
+__all__ = ["Frontend", "GCSlamConfig"]
+
+
+class Frontend(str, enum.Enum):
+    """How a frame is registered to its keyframe.
+
+    SPARSE: ORB features, isometry filter, RANSAC and refinement (:mod:`torchslam.registration.sparse`).
+    DENSE: photometric + geometric alignment on an image pyramid (:mod:`torchslam.registration.dense`).
+    """
+
+    SPARSE = "sparse"
+    DENSE = "dense"
+
+
+@dataclass(frozen=True)
+class GCSlamConfig:
+    """Settings of GC-SLAM. Defaults follow the authors' released code where the paper is silent.
+
+    Attributes:
+        frontend: :class:`Frontend`, ``sparse`` (ORB registration) or ``dense`` (photometric +
+            geometric); the strings are accepted too.
+        orb_features: ORB features per frame (released code: 2000).
+        orb_scale: ORB pyramid scale factor (1.2).
+        orb_levels: ORB pyramid levels (8).
+        sparse: sparse registration settings (isometry filter, RANSAC, refinement).
+        dense: dense registration settings (320x240 pyramid).
+        keyframe_displacement: a frame becomes a keyframe when the keyframe's points move by
+            more than this fraction of the focal length on average (released code: 0.1).
+        keyframe_sample_stride: pixel stride of the keyframe points used for that test.
+        mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
+        loops: look for loop closures at every new keyframe.
+        fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
+        loop_iterations: iterations of the trial optimisation that tests loop candidates.
+        loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
+            by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
+        loop_slack_m: absolute slack of that test, metres. Real registrations are biased by
+            millimetres (colour/depth timing, rolling shutter), so a true loop over a chain of
+            such pairs raises their RMS error by millimetres, which the relative rule alone
+            would reject; a false loop moves the error by centimetres.
+        final_iterations: iterations of one last FastGO run over all keyframes at the end of
+            the sequence (0: keep the per-keyframe result).
+        threaded: run optimisation in a background thread (False: inline, for tests).
+        relocalize_keyframes: recent keyframes tried when a frame cannot be registered.
+        max_lost: lost frames in a row before a new, unlinked keyframe is started.
+        min_valid_depth: frames with fewer valid depth pixels are not tracked.
+        interpolation_max_gap: largest gap between depth instants across which the trajectory is
+            interpolated to the colour timestamps, seconds.
+        map_stride: pixel stride of the keyframe clouds in ``map.ply``.
+        map_voxel: voxel size of ``map.ply``, metres.
+        max_depth: depth beyond this is ignored for the map, metres.
+    """
+
+    frontend: Frontend = Frontend.SPARSE
+    orb_features: int = 2000
+    orb_scale: float = 1.2
+    orb_levels: int = 8
+    sparse: SparseConfig = field(default_factory=SparseConfig)
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    keyframe_displacement: float = 0.1
+    keyframe_sample_stride: int = 16
+    mild: MILDConfig = field(default_factory=MILDConfig)
+    loops: bool = True
+    fastgo_iterations: int = 3
+    loop_iterations: int = 10
+    loop_threshold: float = 0.05
+    loop_slack_m: float = 0.003
+    final_iterations: int = 10
+    threaded: bool = True
+    relocalize_keyframes: int = 5
+    max_lost: int = 10
+    min_valid_depth: int = 1000
+    interpolation_max_gap: float = 0.1
+    map_stride: int = 4
+    map_voxel: float = 0.01
+    max_depth: float = 5.0
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
+        "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
+        "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
+        "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
+        "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
+    }
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "frontend", parse_choice(Frontend, self.frontend, "frontend"))
+        check_limits(self)
+
+    def orb(self) -> ORBConfig:
+        """The ORB extractor's settings."""
+        return ORBConfig(n_features=self.orb_features, scale_factor=self.orb_scale, n_levels=self.orb_levels)

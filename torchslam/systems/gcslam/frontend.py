@@ -1,0 +1,191 @@
+"""GC-SLAM's front-ends: how a frame is prepared and registered to its keyframe (paper §IV-A).
+
+Both front-ends have one interface, so the tracker never asks which one it runs:
+
+* :meth:`TrackingFrontend.prepare` turns a frame's images into a :class:`PreparedFrame`: ORB
+  features where the front-end needs them now, the dense pyramid for the dense front-end;
+* :meth:`TrackingFrontend.register` registers a prepared frame to a keyframe and returns a
+  :class:`Registration` (relative pose, FastGO statistics, correspondence count);
+* :meth:`TrackingFrontend.features` computes a frame's ORB features when something else needs
+  them (a new keyframe for MILD and loop registration, relocalisation).
+
+The sparse front-end (:class:`SparseFrontend`) registers ORB features (isometry filter, RANSAC,
+refinement); the dense one (:class:`DenseFrontend`) aligns the frame's pyramid to the current
+keyframe's photometrically and geometrically, starting from the last frame's pose, and computes
+ORB features only for keyframes.
+
+Convention:
+    ``T_kf`` (4, 4) float64 maps frame points into the keyframe: ``p_kf = T_kf p_frame``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar, Protocol
+
+import torch
+from torch import Tensor
+
+from ...fastgo import PairStats
+from ...geometry import PinholeCamera
+from ...registration.dense import DenseFrame, prepare_dense_frame, register_dense_frames
+from ...registration.sparse import FrameFeatures, frame_features, register_sparse
+from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
+from .config import Frontend, GCSlamConfig
+
+__all__ = [
+    "DenseFrontend",
+    "PreparedFrame",
+    "Registration",
+    "RegistrationTarget",
+    "SparseFrontend",
+    "TrackingFrontend",
+    "frontend_class",
+    "make_frontend",
+]
+
+
+@dataclass
+class PreparedFrame:
+    """One frame as the front-end works on it.
+
+    Attributes:
+        rgb: (3, H, W) colour in [0, 1] on the tracker's device.
+        depth: (1, H, W) depth, metres (0 = invalid).
+        features: ORB features, or None until something needs them.
+        dense: the dense pyramid (dense front-end only), else None.
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    features: FrameFeatures | None = None
+    dense: DenseFrame | None = None
+
+
+class RegistrationTarget(Protocol):
+    """What a front-end registers a frame against: the keyframe's features and dense pyramid."""
+
+    features: FrameFeatures
+    dense: DenseFrame | None
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A frame registered to its keyframe.
+
+    Attributes:
+        ok: the registration succeeded (enough inliers or correspondences).
+        T_kf: (4, 4) float64 frame pose in the keyframe, ``p_kf = T_kf p_frame``.
+        stats: FastGO statistics of its correspondences (one pair; points in keyframe and frame).
+        correspondences: inliers (sparse) or correspondences (dense) kept.
+    """
+
+    ok: bool
+    T_kf: Tensor
+    stats: PairStats
+    correspondences: int
+
+
+class TrackingFrontend:
+    """The interface of both front-ends and their shared ORB extraction."""
+
+    kind: ClassVar[Frontend]
+
+    def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
+        """
+        Args:
+            cfg: GC-SLAM settings.
+            camera: the sequence's camera.
+            rays: (H*W, 2) undistorted normalised rays (:func:`~torchslam.geometry.undistorted_rays`)
+                of a camera with distortion, else None.
+            generator: the tracker's source of RANSAC seeds (shared with relocalisation).
+        """
+        self.cfg = cfg
+        self.camera = camera
+        self.rays = rays
+        self.generator = generator
+        self.orb_cfg = cfg.orb()
+
+    def features(self, frame: PreparedFrame) -> FrameFeatures:
+        """The frame's ORB features, computed on first use and kept in ``frame``."""
+        if frame.features is None:
+            frame.features = frame_features(frame.rgb, frame.depth, self.camera, self.orb_cfg, self.cfg.sparse, rays=self.rays)
+        return frame.features
+
+    def prepare(self, rgb: Tensor, depth: Tensor, keyframe: bool, lap: Callable[[str], None]) -> PreparedFrame:
+        """Prepare a frame for registration.
+
+        Args:
+            rgb: (3, H, W) colour in [0, 1] on the tracker's device.
+            depth: (1, H, W) depth, metres.
+            keyframe: the frame becomes a keyframe whatever it registers to (its ORB features are
+                needed).
+            lap: called with a stage name when that stage of the preparation is done (timing).
+        """
+        raise NotImplementedError
+
+    def register(self, keyframe: RegistrationTarget, frame: PreparedFrame, T_guess: Tensor) -> Registration:
+        """Register ``frame`` to ``keyframe``; ``T_guess`` (4, 4) float64 is the last frame's ``T_kf``."""
+        raise NotImplementedError
+
+    @staticmethod
+    def memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
+        """Working memory beyond the images, for ``systems.memory``: ``{what: (bytes, why)}``."""
+        return {}
+
+
+class SparseFrontend(TrackingFrontend):
+    """ORB features of every frame registered to the keyframe's (FastGO paper §IV-A1)."""
+
+    kind = Frontend.SPARSE
+
+    def prepare(self, rgb: Tensor, depth: Tensor, keyframe: bool, lap: Callable[[str], None]) -> PreparedFrame:
+        frame = PreparedFrame(rgb, depth)
+        self.features(frame)
+        lap("orb_extraction")
+        return frame
+
+    def register(self, keyframe: RegistrationTarget, frame: PreparedFrame, T_guess: Tensor) -> Registration:
+        res = register_sparse(keyframe.features, frame.features, self.cfg.sparse, self.generator)
+        return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0]))
+
+
+class DenseFrontend(TrackingFrontend):
+    """Dense photometric + geometric alignment to the current keyframe (FastGO paper §IV-A2)."""
+
+    kind = Frontend.DENSE
+
+    def prepare(self, rgb: Tensor, depth: Tensor, keyframe: bool, lap: Callable[[str], None]) -> PreparedFrame:
+        frame = PreparedFrame(rgb, depth)
+        if keyframe:
+            self.features(frame)
+            lap("orb_extraction")
+        frame.dense = prepare_dense_frame(rgb[None], depth[None], self.camera, self.cfg.dense)
+        lap("dense_preparation")
+        return frame
+
+    def register(self, keyframe: RegistrationTarget, frame: PreparedFrame, T_guess: Tensor) -> Registration:
+        res = register_dense_frames(keyframe.dense, frame.dense, T_guess[None], self.cfg.dense)
+        return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_correspondences[0]))
+
+    @staticmethod
+    def memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
+        """The dense working pyramid."""
+        factor = max(1, round(camera.width / cfg.dense.width))
+        working = (camera.width // factor) * (camera.height // factor)
+        return {"dense pyramid": (DENSE_BYTES_PER_WORKING_PIXEL * working * batch,
+                                  f"image {camera.width}x{camera.height}, dense.width = {cfg.dense.width}")}
+
+
+_FRONTENDS: dict[Frontend, type[TrackingFrontend]] = {Frontend.SPARSE: SparseFrontend, Frontend.DENSE: DenseFrontend}
+
+
+def frontend_class(kind: Frontend) -> type[TrackingFrontend]:
+    """The front-end class of a :class:`Frontend` option."""
+    return _FRONTENDS[kind]
+
+
+def make_frontend(cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> TrackingFrontend:
+    """The front-end ``cfg.frontend`` names, for one sequence."""
+    return frontend_class(cfg.frontend)(cfg, camera, rays, generator)
