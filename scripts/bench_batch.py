@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from _bench import RESULTS, sync
 from torchslam.data.frame import Frame
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.environment import environment_info
@@ -35,7 +36,6 @@ from torchslam.systems import run_sequence
 from torchslam.systems.lockstep import default_max_batch, run_lockstep
 from torchslam.systems.nislam import NISlam, NISlamConfig
 
-RESULTS = Path(__file__).resolve().parent / "results"
 POOL = [(t, s) for s in (0, 1) for t in ("orbit", "translate", "loop", "handheld")]
 
 
@@ -72,11 +72,6 @@ def make_group(pool: list, B: int, frames: int, device: str, cache: dict) -> lis
             cache[key] = InMemorySequence(pool[key[0]], key[1], frames, device)
         group.append(cache[key])
     return group
-
-
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
 
 
 def measure(cfg: NISlamConfig, group: list, device: str, mode: str) -> dict:

@@ -4,7 +4,7 @@ Measures, in one run on one machine:
 
 1. **Linearisation** of M pairs as correspondences per pair grow (100 -> 50,000): FastGO
    (:func:`torchslam.fastgo.linearize`, from 28 statistics per pair) against the
-   per-correspondence reference (:func:`torchslam.fastgo.reference_linearize`, vectorised over
+   per-correspondence reference (``reference_linearize`` of ``tests/_references.py``, vectorised over
    correspondences), with their ratio measured in the same run.
 2. **Full optimisation** to convergence of repeated-route pose graphs
    (:func:`torchslam.fastgo.synthetic.loop_route_problem`: odometry chain, two near-in-time
@@ -31,7 +31,6 @@ import argparse
 import gc
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
@@ -40,31 +39,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchslam.fastgo import FastGOConfig, PairStats, assemble, linearize, optimize, reference_linearize
+from _bench import REPO_ROOT, test_references, time_calls
+from torchslam.fastgo import FastGOConfig, PairStats, assemble, linearize, optimize
 from torchslam.fastgo.optimize import FastGOProblem, _prepare
 from torchslam.fastgo.synthetic import loop_route_problem
 from torchslam.geometry import se3_exp
 from torchslam.optim import analyze, block_cholesky, pcg_block_jacobi
 from torchslam.environment import cpu_model as _cpu_model
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def _sync(device) -> None:
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
+reference_linearize = test_references().reference_linearize
 
 
 def _time(fn, repeat: int, device="cpu") -> dict:
-    fn()  # warm-up (caches, lazy imports, allocator)
-    _sync(device)
-    ts = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        _sync(device)
-        ts.append(time.perf_counter() - t)
-    return {"median_s": statistics.median(ts), "best_s": min(ts)}
+    t = time_calls(fn, repeat, device)
+    return {"median_s": t.median, "best_s": t.best}
 
 
 def _rss_kib(field: str) -> int | None:

@@ -27,10 +27,10 @@ from pathlib import Path
 import cv2
 import torch
 
+from _bench import RESULTS, data_root, load_average
 from torchslam.data import TUMSequence
 from torchslam.environment import cpu_model as _cpu_model
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 SEQUENCES = ("tum_fr1_xyz", "7scenes_redkitchen", "hololens_dvmvs")
 
 
@@ -64,9 +64,8 @@ def _one_pass(seq: TUMSequence, work, work_s: float) -> tuple[float, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    env = os.environ.get("TORCHSLAM_DATA")
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(env) if env else REPO_ROOT.parent / "shared" / "data",
+    parser.add_argument("--data", type=Path, default=data_root(),
                         help="folder holding the sequences (default $TORCHSLAM_DATA or ../shared/data)")
     parser.add_argument("--sequences", nargs="+", default=list(SEQUENCES), help="sequence folder names under --data")
     parser.add_argument("--prefetch", nargs="+", type=int, default=[0, 2, 4], help="prefetch depths to compare")
@@ -74,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work-ms", type=float, default=10.0, help="simulated compute per frame, milliseconds")
     parser.add_argument("--repeat", type=int, default=3, help="passes per setting; the best and median are reported")
     parser.add_argument("--max-frames", type=int, default=None, help="use only the first N frames of each sequence")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "scripts" / "results" / "bench_loader.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "bench_loader.json")
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
@@ -83,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         "nproc": os.cpu_count(),
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "cpu_model": _cpu_model(),
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "load_average_at_start": load_average(),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),

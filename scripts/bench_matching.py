@@ -30,26 +30,16 @@ from pathlib import Path
 import cv2
 import torch
 
+from _bench import RESULTS, data_root, load_average, time_calls
 from torchslam.data import TUMSequence
 from torchslam.features import ORBConfig, extract_orb, hamming_distance, match_descriptors
 from torchslam.loop import MILDConfig, MILDDatabase
 from torchslam.environment import cpu_model as _cpu_model
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
-
-def _time(fn, repeat: int, sync=None) -> dict:
-    fn()  # warm-up (allocations, lazy initialisation, GPU kernels)
-    if sync:
-        sync()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        if sync:
-            sync()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return {"best_ms": min(times), "median_ms": statistics.median(times)}
+def _time(fn, repeat: int, device: str = "cpu") -> dict:
+    t = time_calls(fn, repeat, device)
+    return {"best_ms": t.best * 1e3, "median_ms": t.median * 1e3}
 
 
 def _descriptors(data: Path, n_features: int) -> tuple[torch.Tensor, torch.Tensor, str]:
@@ -66,15 +56,14 @@ def _descriptors(data: Path, n_features: int) -> tuple[torch.Tensor, torch.Tenso
 
 
 def _matching_rows(d1, d2, repeat: int, device: str) -> list[dict]:
-    sync = torch.cuda.synchronize if device == "cuda" else None
     a, b = d1.to(device), d2.to(device)
     rows = []
     for kernel in ("swar", "lut", "matmul"):
         rows.append({"task": "distance matrix", "impl": f"torch {kernel}", "device": device,
-                     **_time(lambda: hamming_distance(a, b, kernel), repeat, sync)})
+                     **_time(lambda: hamming_distance(a, b, kernel), repeat, device)})
     for kernel in ("swar", "matmul"):
         rows.append({"task": "nearest neighbour", "impl": f"torch {kernel}", "device": device,
-                     **_time(lambda: match_descriptors(a, b, backend="torch", kernel=kernel), repeat, sync)})
+                     **_time(lambda: match_descriptors(a, b, backend="torch", kernel=kernel), repeat, device)})
     if device == "cpu":
         an, bn = d1.numpy(), d2.numpy()
         bf = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -123,10 +112,10 @@ def _mild_rows(keyframes, queries, repeat: int) -> list[dict]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("TORCHSLAM_DATA", REPO_ROOT.parent / "shared" / "data")))
+    parser.add_argument("--data", type=Path, default=data_root())
     parser.add_argument("--repeat", type=int, default=7, help="timed runs per setting (best and median reported)")
     parser.add_argument("--features", type=int, default=2000, help="ORB features per frame")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "scripts" / "results" / "bench_matching.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "bench_matching.json")
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
@@ -135,7 +124,7 @@ def main(argv=None) -> int:
         "cpu_model": _cpu_model(),
         "nproc": os.cpu_count(),
         "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "load_average_at_start": load_average(),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "opencv": cv2.__version__,
@@ -153,7 +142,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(default_threads)
     if torch.cuda.is_available():
         rows += [{**r, "torch_threads": None} for r in _matching_rows(d1, d2, args.repeat, "cuda")]
-    machine["load_average_at_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    machine["load_average_at_end"] = load_average()
 
     report = {
         "descriptors": {"source": source, "k1": int(d1.shape[0]), "k2": int(d2.shape[0])},

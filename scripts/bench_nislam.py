@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from _bench import RESULTS, time_calls
 from torchslam.config import config_from_dict
 from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
@@ -28,7 +29,6 @@ from torchslam.systems.nislam import NISlam, NISlamConfig, attitude_stream, trac
 from torchslam.app.calibrate_time import estimate_attitude_time_offset
 
 PAPER_ATE_M = {"tum_fr1_xyz": 0.011}  # NI-SLAM Table 1 (ground-truth attitude on TUM)
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 SETTINGS = {
@@ -100,16 +100,7 @@ def batched_kcc(data_root: Path, sizes: list[int], device: str, repeat: int) -> 
         filt = kcc_train(kcc_features(kf.grey, kf.depth, kf.valid, k.channel_norm, k.fill_holes), k.sigma, k.lam)
         km = keyframe_map(kf)
         R = torch.eye(3, device=device).expand(B, 3, 3)
-        track_step(p1, g1, v1, R, km, filt, r, k)  # warm-up
-        times = []
-        for _ in range(repeat):
-            if device == "cuda":
-                torch.cuda.synchronize()
-            t0 = time.perf_counter()
-            track_step(p1, g1, v1, R, km, filt, r, k)
-            if device == "cuda":
-                torch.cuda.synchronize()
-            times.append(time.perf_counter() - t0)
+        times = time_calls(lambda: track_step(p1, g1, v1, R, km, filt, r, k), repeat, device).seconds
         best = min(times)
         med = sorted(times)[len(times) // 2]
         rows.append({"device": device, "B": B, "ms_per_batch_median": 1000 * med, "frames_per_s_median": B / med,

@@ -28,23 +28,15 @@ from pathlib import Path
 
 import torch
 
+from _bench import RESULTS, load_average, sync, time_calls
 from torchslam.data import SyntheticConfig, generate_sequence
 from torchslam.imu import ImuData, ahrs_attitude
 from torchslam.environment import cpu_model as _cpu_model
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
 
 def _load() -> list[float] | None:
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        return None
-
-
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
+    load = load_average()
+    return None if load is None else [round(x, 2) for x in load]
 
 
 def _stats(seconds: list[float], frames: int) -> dict:
@@ -63,10 +55,10 @@ def bench_render(seq, batch: int, repeat: int, device: str) -> dict:
     for r in range(repeat):
         idx = [(r * batch + k) % n for k in range(batch)]
         T = seq.groundtruth.T_wc[idx]
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         seq.renderer.render(T)
-        _sync(device)
+        sync(device)
         times.append(time.perf_counter() - t0)
     return _stats(times, batch)
 
@@ -78,10 +70,10 @@ def bench_sequence_render(seq, batch: int, repeat: int, device: str) -> dict:
     times = []
     for r in range(repeat):
         idx = [(r * batch + k) % n for k in range(batch)]
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         seq.render(idx)
-        _sync(device)
+        sync(device)
         times.append(time.perf_counter() - t0)
     return _stats(times, batch)
 
@@ -94,7 +86,7 @@ def bench_full_sequence(cfg: SyntheticConfig, device: str) -> dict:
     t1 = time.perf_counter()
     for start in range(0, len(seq), cfg.batch_size):
         seq.render(range(start, min(len(seq), start + cfg.batch_size)))
-    _sync(device)
+    sync(device)
     t_render = time.perf_counter() - t1
     return {
         "frames": len(seq),
@@ -111,13 +103,8 @@ def bench_ahrs(samples: int, repeat: int) -> dict:
     gyro = 0.3 * torch.randn(samples, 3, generator=g, dtype=torch.float64)
     accel = torch.tensor([0.0, 0.0, 9.81], dtype=torch.float64) + 0.1 * torch.randn(samples, 3, generator=g, dtype=torch.float64)
     imu = ImuData(t, gyro, accel)
-    ahrs_attitude(imu)
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        ahrs_attitude(imu)
-        times.append(time.perf_counter() - t0)
-    return {"samples": samples, "ms_best": 1e3 * min(times), "ms_median": 1e3 * statistics.median(times)}
+    t = time_calls(lambda: ahrs_attitude(imu), repeat)
+    return {"samples": samples, "ms_best": 1e3 * t.best, "ms_median": 1e3 * t.median}
 
 
 def main() -> None:
@@ -129,7 +116,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", type=Path, default=REPO_ROOT / "scripts" / "results" / "bench_synth.json")
+    parser.add_argument("--out", type=Path, default=RESULTS / "bench_synth.json")
     args = parser.parse_args()
 
     base = dict(frames=args.frames, width=args.width, height=args.height)

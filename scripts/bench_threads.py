@@ -32,10 +32,10 @@ import sys
 import time
 from pathlib import Path
 
+from _bench import RESULTS, time_calls
 from torchslam.environment import environment_info
 from torchslam.threads import THREADS_ENV, policy_threads, setup_threads
 
-RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_DATA = Path(os.environ.get("TORCHSLAM_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) / "tum_fr1_xyz"
 WORKLOADS = ("nislam", "gcslam_sparse", "fastgo_n600")
 SETTINGS = ("default", "1", "2")
@@ -85,13 +85,13 @@ def _track(system_name: str, overrides: dict, data: Path, frames: int, cap_s: fl
 
 
 def _fastgo(keyframes: int) -> dict:
-    from bench_fastgo import _problem, _time  # scripts/ is on sys.path: this file's folder
+    from bench_fastgo import _problem  # scripts/ is on sys.path: this file's folder
 
     from torchslam.fastgo import optimize
 
     P = _problem(keyframes)
-    t = _time(lambda: optimize(P.T_init, P.pairs, P.stats), 1)
-    return {"value": t["median_s"], "unit": "s", "keyframes": keyframes, "pairs": int(P.pairs.shape[0])}
+    t = time_calls(lambda: optimize(P.T_init, P.pairs, P.stats), 1)
+    return {"value": t.median, "unit": "s", "keyframes": keyframes, "pairs": int(P.pairs.shape[0])}
 
 
 def worker(workload: str, setting: str, data: Path, frames: int, cap_s: float) -> dict:

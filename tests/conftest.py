@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 import torch
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def data_root() -> Path:
-    """Folder of the real sequences: ``$TORCHSLAM_DATA`` or ``../shared/data`` beside the repo."""
-    env = os.environ.get("TORCHSLAM_DATA")
-    return Path(env) if env else (REPO_ROOT.parent / "shared" / "data")
+from tests._helpers import data_root
 
 
 @pytest.fixture

@@ -126,7 +126,7 @@ def _resolves_for_some_system(example: str) -> bool:
 
 
 def test_every_set_example_in_the_help_texts_and_readme_resolves():
-    from .conftest import REPO_ROOT
+    from tests._helpers import REPO_ROOT
 
     sources = dict(_help_texts())
     sources["README.md"] = (REPO_ROOT / "README.md").read_text()
@@ -200,7 +200,7 @@ def test_run_refuses_a_frame_limit_below_one_as_batch_does(tmp_path, capsys, val
 def test_a_reader_that_closes_the_pipe_early_ends_quietly(shared_data, command):
     import os
 
-    from .conftest import REPO_ROOT
+    from tests._helpers import REPO_ROOT
 
     seq = shared_data / "tum_fr1_xyz"
     argv = {"info": ["info", str(seq)], "eval": ["eval", "--est", str(seq / "groundtruth.txt"), "--gt", str(seq / "groundtruth.txt")]}

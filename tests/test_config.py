@@ -7,7 +7,7 @@ import yaml
 from torchslam.config import config_from_dict, config_to_dict, load_config, parse_overrides, save_config
 from torchslam.errors import ConfigError
 
-from .conftest import REPO_ROOT
+from tests._helpers import REPO_ROOT
 
 
 class Mode(enum.Enum):

@@ -12,7 +12,7 @@ from torchslam.config import config_file, load_config, preset_names
 from torchslam.errors import ConfigError
 from torchslam.systems.nislam import NISlamConfig
 
-from .conftest import REPO_ROOT
+from tests._helpers import REPO_ROOT
 
 TINY = ["--data", "synthetic", "--no-progress", "--max-frames", "4",
         "--set", "data.synthetic.frames=6", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120",

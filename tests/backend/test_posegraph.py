@@ -5,14 +5,12 @@ from torchslam.backend import edge_residuals, linearize_pose_graph, optimize_pos
 from torchslam.errors import ShapeError
 from torchslam.geometry import se3_exp, se3_inverse, se3_log
 
-
-def _gen(seed):
-    return torch.Generator().manual_seed(seed)
+from tests._helpers import seeded
 
 
 def _loop_graph(n=30, seed=0, noise=0.0):
     """Poses on a circle, odometry edges between neighbours and loop edges back to the start."""
-    g = _gen(seed)
+    g = seeded(seed)
     angles = torch.linspace(0, 2 * torch.pi * (n - 1) / n, n, dtype=torch.float64)
     xi = torch.zeros(n, 6, dtype=torch.float64)
     xi[:, 0], xi[:, 2], xi[:, 4] = 2 * torch.cos(angles), 2 * torch.sin(angles), -angles
@@ -30,7 +28,7 @@ def _loop_graph(n=30, seed=0, noise=0.0):
 def test_gradient_and_hessian_match_autograd():
     # Jr^-1 is taken to first order, so the gradient is exact up to O(|r|^2): keep residuals ~1e-2.
     T_gt, i, j, T_ij, info = _loop_graph(8, noise=0.005)
-    T0 = se3_exp(0.005 * torch.randn(8, 6, generator=_gen(1), dtype=torch.float64)) @ T_gt
+    T0 = se3_exp(0.005 * torch.randn(8, 6, generator=seeded(1), dtype=torch.float64)) @ T_gt
     info = info * torch.linspace(0.5, 2.0, 6, dtype=torch.float64)  # anisotropic
     H, g, cost = linearize_pose_graph(T0, i, j, T_ij, info)
 
@@ -61,7 +59,7 @@ def test_gradient_and_hessian_match_autograd():
 def test_planted_loop_returns_to_ground_truth():
     T_gt, i, j, T_ij, info = _loop_graph(30)
     # Drifted initial guess: compose noisy odometry along the chain.
-    g = _gen(3)
+    g = seeded(3)
     T0 = [T_gt[0]]
     for k in range(29):
         step = se3_exp(0.02 * torch.randn(6, generator=g, dtype=torch.float64)) @ (se3_inverse(T_gt[k]) @ T_gt[k + 1])

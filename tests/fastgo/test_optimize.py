@@ -17,10 +17,11 @@ from torchslam.fastgo import (
     assemble,
     optimize,
     optimize_batch,
-    reference_linearize,
 )
 from torchslam.fastgo.synthetic import loop_route_problem, make_correspondences
 from torchslam.geometry import se3_exp, se3_inverse, se3_log
+
+from tests._references import reference_linearize
 
 
 def pose_error(A: torch.Tensor, B: torch.Tensor) -> float:

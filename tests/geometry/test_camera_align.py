@@ -14,14 +14,12 @@ from torchslam.geometry import (
     umeyama_alignment,
 )
 
-
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
+from tests._helpers import seeded
 
 
 def test_backproject_then_project_is_identity_on_valid_pixels():
     cam = PinholeCamera(517.3, 516.5, 318.6, 255.3, 64, 48)
-    g = _gen(0)
+    g = seeded(0)
     depth = torch.rand(2, 1, 48, 64, generator=g, dtype=torch.float64) * 4 + 0.5
     depth[0, 0, 3, 5] = 0.0
     depth[1, 0, 7, 9] = float("nan")
@@ -74,7 +72,7 @@ def _numpy_umeyama(src, dst, with_scale):
 
 @pytest.mark.parametrize("with_scale", [False, True])
 def test_umeyama_planted_and_numpy_reference(with_scale):
-    g = _gen(1)
+    g = seeded(1)
     T = se3_exp(torch.randn(4, 6, generator=g, dtype=torch.float64))
     src = torch.randn(4, 30, 3, generator=g, dtype=torch.float64)
     s_true = torch.tensor([1.0, 2.0, 0.5, 1.3], dtype=torch.float64) if with_scale else torch.ones(4, dtype=torch.float64)
@@ -92,7 +90,7 @@ def test_umeyama_planted_and_numpy_reference(with_scale):
 
 
 def test_umeyama_weights_and_padding_and_reflection():
-    g = _gen(2)
+    g = seeded(2)
     T = se3_exp(torch.randn(1, 6, generator=g, dtype=torch.float64))
     src = torch.randn(1, 20, 3, generator=g, dtype=torch.float64)
     dst = se3_act(T, src)

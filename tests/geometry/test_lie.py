@@ -22,16 +22,13 @@ from torchslam.geometry import (
     vex,
 )
 
-TOL = {torch.float64: 1e-10, torch.float32: 2e-5}
+from tests._helpers import TOL, seeded
+
 BATCHES = [(), (1,), (5,), (2, 3)]
 
 
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
-
-
 def random_twist(shape, dtype=torch.float64, max_angle=3.0, seed=0):
-    g = _gen(seed)
+    g = seeded(seed)
     rho = torch.randn(*shape, 3, generator=g, dtype=dtype)
     axis = torch.randn(*shape, 3, generator=g, dtype=dtype)
     axis = axis / axis.norm(dim=-1, keepdim=True)
@@ -51,7 +48,7 @@ def test_exp_log_roundtrip_all_batch_shapes(shape, dtype):
 
 @pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-8, 1e-4, 0.049, 0.05, 0.051, 0.5, 2.0, math.pi - 1e-3, math.pi - 1e-7])
 def test_so3_roundtrip_across_branches_float64(angle):
-    g = _gen(1)
+    g = seeded(1)
     axis = torch.randn(50, 3, generator=g, dtype=torch.float64)
     phi = axis / axis.norm(dim=-1, keepdim=True) * angle
     R = so3_exp(phi)
@@ -95,7 +92,7 @@ def test_quaternion_of_half_turns_and_sign_canonical():
 def test_slerp_against_scipy():
     from scipy.spatial.transform import Slerp
 
-    g = _gen(4)
+    g = seeded(4)
     q0, q1 = torch.randn(2, 4, generator=g, dtype=torch.float64)
     q0, q1 = q0 / q0.norm(), q1 / q1.norm()
     alphas = torch.linspace(0, 1, 7, dtype=torch.float64)
@@ -118,14 +115,14 @@ def test_group_identities_float64():
     rhs = se3_exp((se3_adjoint(A) @ xi[..., None])[..., 0])
     torch.testing.assert_close(lhs, rhs, atol=1e-10, rtol=0)
     # Action agrees with the homogeneous product.
-    p = torch.randn(20, 7, 3, generator=_gen(8), dtype=torch.float64)
+    p = torch.randn(20, 7, 3, generator=seeded(8), dtype=torch.float64)
     ph = torch.cat([p, torch.ones_like(p[..., :1])], -1)
     torch.testing.assert_close(se3_act(A, p), (A[:, None] @ ph[..., None])[..., :3, 0], atol=1e-12, rtol=0)
 
 
 def test_skew_vex():
-    v = torch.randn(4, 3, generator=_gen(9), dtype=torch.float64)
-    u = torch.randn(4, 3, generator=_gen(10), dtype=torch.float64)
+    v = torch.randn(4, 3, generator=seeded(9), dtype=torch.float64)
+    u = torch.randn(4, 3, generator=seeded(10), dtype=torch.float64)
     torch.testing.assert_close((skew(v) @ u[..., None])[..., 0], torch.cross(v, u, dim=-1), atol=1e-14, rtol=0)
     torch.testing.assert_close(vex(skew(v)), v, atol=0, rtol=0)
 

@@ -24,11 +24,7 @@ from torchslam.kcc import (
     spectral_energy,
 )
 
-TOL = {torch.float64: 1e-10, torch.float32: 2e-5}
-
-
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
+from tests._helpers import TOL, seeded
 
 
 def fourier_shift(img, sx, sy):
@@ -81,7 +77,7 @@ def direct_response(x, z, sigma, lam):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("W", [7, 8])
 def test_weighted_half_spectrum_energy_equals_spatial_sum(dtype, W):
-    x = torch.rand(3, 2, 6, W, generator=_gen(1), dtype=torch.float64).to(dtype)
+    x = torch.rand(3, 2, 6, W, generator=seeded(1), dtype=torch.float64).to(dtype)
     e = spectral_energy(torch.fft.rfft2(x), W)
     torch.testing.assert_close(e, x.square().sum(dim=(1, 2, 3)), rtol=TOL[dtype], atol=0)
     # An unweighted sum over the half spectrum misses half the energy outside the k_x = 0 (and
@@ -107,7 +103,7 @@ def test_spectral_energy_rejects_bad_input():
 @pytest.mark.parametrize("shape", [(5, 7), (6, 8)])
 def test_fft_kernel_correlation_equals_direct_all_shifts(dtype, shape):
     H, W = shape
-    g = _gen(2)
+    g = seeded(2)
     z = torch.rand(2, 2, H, W, generator=g, dtype=torch.float64)
     x = torch.roll(z, (2, -3), (-2, -1)) + 0.1 * torch.randn(2, 2, H, W, generator=g, dtype=torch.float64)
     ref = torch.from_numpy(direct_kernel(x.numpy(), z.numpy(), 0.3))
@@ -117,7 +113,7 @@ def test_fft_kernel_correlation_equals_direct_all_shifts(dtype, shape):
 
 
 def test_kcc_response_equals_circulant_solution():
-    g = _gen(3)
+    g = seeded(3)
     z = torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64)
     x = torch.roll(z, (1, 2), (-2, -1)) + 0.05 * torch.randn(2, 1, 6, 7, generator=g, dtype=torch.float64)
     sigma, lam = 0.25, 0.1
@@ -133,7 +129,7 @@ def test_kcc_response_equals_circulant_solution():
 
 def test_unweighted_half_spectrum_energy_only_rescales_lambda():
     """The docstring claim: under-counted energies act as λ / a and scale g by b / a."""
-    g = _gen(4)
+    g = seeded(4)
     H, W, sigma, lam = 8, 10, 0.2, 0.1
     z = torch.rand(1, 1, H, W, generator=g, dtype=torch.float64)
     x = torch.roll(z, (1, 3), (-2, -1)) + 0.05 * torch.randn(1, 1, H, W, generator=g, dtype=torch.float64)
@@ -177,7 +173,7 @@ def test_integer_circular_shifts_of_real_images_are_recovered(grey_patches):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_subpixel_fourier_shifts_of_real_images_within_a_tenth_pixel(grey_patches, dtype):
-    gen = _gen(5)
+    gen = seeded(5)
     planted = torch.rand(6, 2, generator=gen, dtype=torch.float64) * 20 - 10
     planted[0] = torch.tensor([0.5, -0.5])  # half-way between two integer peaks
     planted[1] = torch.tensor([-63.3, 40.45])  # across the wrap-around
@@ -257,7 +253,7 @@ def _brute_psr(g, window):
 
 
 def test_psr_equals_brute_force_with_the_peak_at_a_corner():
-    g = torch.rand(2, 20, 24, generator=_gen(6), dtype=torch.float64)
+    g = torch.rand(2, 20, 24, generator=seeded(6), dtype=torch.float64)
     g[0, 0, 23] = 5.0  # the excluded 11 x 11 window wraps around both axes
     g[1, 10, 12] = 3.0
     psr = peak_to_sidelobe(g, window=11)
@@ -287,7 +283,7 @@ def test_psr_falls_as_overlap_falls(grey_patches):
 
 
 def test_shift_variance_follows_eq19_and_reports_inf_for_an_empty_response():
-    g = torch.rand(3, 10, 12, generator=_gen(7), dtype=torch.float64)
+    g = torch.rand(3, 10, 12, generator=seeded(7), dtype=torch.float64)
     r = torch.tensor([0.01, 0.02, 0.005], dtype=torch.float64)
     expected = r**2 * g.sum(dim=(1, 2)) / (2 * math.pi * g.amax(dim=(1, 2)))
     torch.testing.assert_close(shift_variance(g, resolution=r), expected)
@@ -298,8 +294,8 @@ def test_shift_variance_follows_eq19_and_reports_inf_for_an_empty_response():
 
 
 def test_frame_sharing_nothing_gives_low_psr_and_no_nan():
-    z = torch.rand(2, 1, 32, 32, generator=_gen(8)) * 30.0  # huge differences: every kernel value underflows
-    x = torch.rand(2, 1, 32, 32, generator=_gen(9)) * 30.0
+    z = torch.rand(2, 1, 32, 32, generator=seeded(8)) * 30.0  # huge differences: every kernel value underflows
+    x = torch.rand(2, 1, 32, 32, generator=seeded(9)) * 30.0
     pred = kcc_predict(x, kcc_train(z, 0.2, 0.1), 0.2)
     assert not torch.isnan(pred.psr).any() and not torch.isnan(pred.shift).any()
     assert (pred.psr < 50).all()
@@ -319,7 +315,7 @@ def test_soft_argmax_matches_hard_peak_and_respects_wrap():
 
 
 def test_gradcheck_kernel_and_soft_argmax_chain_in_sigma_and_lam():
-    gen = _gen(10)
+    gen = seeded(10)
     z = torch.rand(1, 2, 5, 6, generator=gen, dtype=torch.float64)
     x = (torch.roll(z, (1, 2), (-2, -1)) + 0.05 * torch.randn(1, 2, 5, 6, generator=gen, dtype=torch.float64))
     x = x.requires_grad_()
@@ -341,7 +337,7 @@ def test_gradcheck_kernel_and_soft_argmax_chain_in_sigma_and_lam():
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_batched_prediction_equals_per_item(grey_patches, dtype):
-    gen = _gen(11)
+    gen = seeded(11)
     z = torch.stack([grey_patches[0], grey_patches[1], grey_patches[0].flip(-1)])[:, None].to(dtype)
     depth = 1.0 + torch.rand(3, 1, 128, 128, generator=gen, dtype=torch.float64).to(dtype)
     z = torch.cat([z, depth], dim=1)  # two channels
@@ -383,7 +379,7 @@ def test_bad_shapes_raise_shape_error():
 
 
 def test_features_standardize_valid_pixels_and_zero_holes():
-    gen = _gen(12)
+    gen = seeded(12)
     grey = torch.rand(2, 6, 7, generator=gen, dtype=torch.float64)
     depth = 2.0 + torch.rand(2, 6, 7, generator=gen, dtype=torch.float64)
     valid = torch.rand(2, 6, 7, generator=gen) > 0.3
@@ -401,7 +397,7 @@ def test_features_standardize_valid_pixels_and_zero_holes():
 
 
 def test_hole_filling_takes_the_mean_of_valid_neighbours():
-    gen = _gen(13)
+    gen = seeded(13)
     grey = torch.rand(1, 9, 10, generator=gen, dtype=torch.float64)
     depth = 1 + torch.rand(1, 9, 10, generator=gen, dtype=torch.float64)
     valid = torch.rand(1, 9, 10, generator=gen) > 0.4
@@ -473,7 +469,7 @@ def test_kernel_correlator_learned_values_stay_positive_under_adam(grey_patches,
     z = F.avg_pool2d(grey_patches[:, None], 2)  # (2, 1, 64, 64)
     shifts = torch.tensor([[2.4, -1.2], [-3.3, 1.7]], dtype=torch.float64)
     x = torch.cat([fourier_shift(z[i : i + 1], float(s[0]), float(s[1])) for i, s in enumerate(shifts)])
-    x = x + 0.1 * torch.randn(x.shape, generator=_gen(0), dtype=torch.float64)
+    x = x + 0.1 * torch.randn(x.shape, generator=seeded(0), dtype=torch.float64)
     names = ("sigma", "lam", "temperature")
     kc = KernelCorrelator(KCCConfig(soft_argmax=True), learnable=set(names), dtype=torch.float64)
     opt = torch.optim.Adam(kc.parameters(), lr=lr)

@@ -18,9 +18,7 @@ from torchslam.kcc import (
     shift_image,
 )
 
-
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
+from tests._helpers import seeded
 
 
 @pytest.fixture
@@ -73,7 +71,7 @@ def test_shift_image_equals_loop_and_is_not_circular():
 def test_shift_image_single_item_slice_path_equals_loop_for_every_shift():
     # B = 1 takes a slice copy instead of the batched gather: check it against the definition
     # out[i, j] = img[i + s_y, j + s_x] for every shift, including ones past the border.
-    img = torch.rand(1, 5, 6, generator=_gen(3), dtype=torch.float64)
+    img = torch.rand(1, 5, 6, generator=seeded(3), dtype=torch.float64)
     for sx in range(-7, 8):
         for sy in range(-6, 7):
             s = torch.tensor([[sx, sy]])
@@ -96,7 +94,7 @@ def test_depth_translation_planted_with_noise_and_a_moving_object(kf):
     obj = torch.zeros_like(frame.valid)
     obj[:, 100:160, 200:280] = True
     grey = torch.where(obj & frame.valid, frame.grey + 0.4, frame.grey)
-    noise = 0.004 * torch.randn(frame.depth.shape, generator=_gen(1), dtype=torch.float64)
+    noise = 0.004 * torch.randn(frame.depth.shape, generator=seeded(1), dtype=torch.float64)
     depth = torch.where(frame.valid, frame.depth + noise, frame.depth)
     depth = torch.where(obj & frame.valid, depth - 0.3, depth)
     noisy = OrthoImages(grey, depth, frame.valid, frame.resolution, frame.center)
@@ -133,7 +131,7 @@ def test_depth_translation_median_ignores_one_sided_outliers(kf):
     s = torch.tensor([[2, -3]])
     frame = _moved(kf, s, dz=0.02)
     # A quarter of the pixels 6 cm too far: inside T_d = 10 cm of the true 2 cm, so they match.
-    edge = torch.rand(frame.depth.shape, generator=_gen(3), dtype=torch.float64) < 0.25
+    edge = torch.rand(frame.depth.shape, generator=seeded(3), dtype=torch.float64) < 0.25
     depth = torch.where(frame.valid & edge, frame.depth + 0.06, frame.depth)
     noisy = OrthoImages(frame.grey, depth, frame.valid, frame.resolution, frame.center)
     mean = depth_translation(noisy, kf, s, median_center=True)
@@ -211,7 +209,7 @@ def test_fusion_fills_holes_and_skips_unmatched_pixels(kf):
 
 
 def test_fusion_is_the_weighted_moving_average_and_gated_by_psr():
-    gen = _gen(3)
+    gen = seeded(3)
     B, H, W = 2, 12, 14
     zg = torch.rand(B, H, W, generator=gen, dtype=torch.float64)
     zd = 1 + torch.rand(B, H, W, generator=gen, dtype=torch.float64)

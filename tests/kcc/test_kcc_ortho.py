@@ -20,9 +20,7 @@ from torchslam.kcc import (
     sample_grey,
 )
 
-
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
+from tests._helpers import seeded
 
 
 def brute_zbuffer(points, grey, valid, R, r, center, H, W):
@@ -77,7 +75,7 @@ def test_zbuffer_planted_nearest_wins_ties_to_lowest_index():
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_zbuffer_equals_per_point_loop_with_rotation_and_center(dtype):
-    gen = _gen(1)
+    gen = seeded(1)
     B, N, H, W = 3, 400, 6, 7
     pts = torch.randn(B, N, 3, generator=gen, dtype=torch.float64) * torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64)
     pts[..., 2] += 2.0
@@ -111,7 +109,7 @@ def test_zbuffer_equals_per_point_loop_with_rotation_and_center(dtype):
 
 
 def test_projection_is_differentiable_in_grey_and_depth_of_the_winners():
-    gen = _gen(2)
+    gen = seeded(2)
     pts = torch.rand(1, 300, 3, generator=gen, dtype=torch.float64) * 2 - 1
     pts[..., 2] += 3.0
     pts.requires_grad_()
@@ -206,7 +204,7 @@ def test_grey_from_rgb_matches_opencv_and_points_follow_backprojection(tum_rgbd)
 
 
 def test_nonpositive_or_nan_resolution_gives_an_empty_image():
-    pts = torch.rand(3, 50, 3, generator=_gen(3)) - 0.5
+    pts = torch.rand(3, 50, 3, generator=seeded(3)) - 0.5
     bad_r = torch.tensor([0.0, -0.1, math.nan])
     out = orthographic_project(pts, torch.rand(3, 50), torch.ones(3, 50, dtype=torch.bool), None, bad_r, (4, 4))
     assert not out.valid.any() and torch.isfinite(out.grey).all() and torch.isfinite(out.depth).all()
@@ -247,7 +245,7 @@ def test_sample_grey_matches_scipy_bilinear_reprojection():
     from scipy.spatial.transform import Rotation
 
     B, H, W = 2, 24, 32
-    g = _gen(3)
+    g = seeded(3)
     rgb = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
     depth = 1.0 + torch.rand(B, 1, H, W, generator=g, dtype=torch.float64)
     depth[0, 0, 5, 7] = 0.0
@@ -282,7 +280,7 @@ def test_rgbd_to_points_is_bit_identical_to_backproject_depth_across_cameras():
     """The cached per-pixel factors must give exactly geometry.backproject_depth, per camera."""
     from torchslam.geometry import backproject_depth
 
-    g = _gen(11)
+    g = seeded(11)
     for dtype in (torch.float32, torch.float64):
         rgb = torch.rand(2, 3, 12, 16, generator=g, dtype=dtype)
         depth = 0.5 + 3 * torch.rand(2, 1, 12, 16, generator=g, dtype=dtype)
@@ -310,7 +308,7 @@ def test_rgbd_to_points_along_undistorted_rays_and_distorted_sample_grey():
     B, H, W = 2, 24, 32
     cam = PinholeCamera(30.0, 31.0, 15.2, 11.7, W, H, (0.26, -0.95, -0.005, 0.003, 1.16))
     intr = cam.as_tensor(torch.float64)
-    g = _gen(5)
+    g = seeded(5)
     rgb = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
     depth = 1.0 + torch.rand(B, 1, H, W, generator=g, dtype=torch.float64)
     depth[1, 0, 4, 6] = 0.0
@@ -361,7 +359,7 @@ def test_sample_grey_rotated_equals_per_point_sampling_to_hundredths_of_a_pixel(
     # Grey ramps: a sampled value is a position, grey = (u + 2 v) / 1000.
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     rgb = ((u + 2 * v) / 1000).expand(2, 3, H, W).contiguous()
-    depth = (1.0 + torch.rand(2, 1, H, W, generator=_gen(7), dtype=torch.float64))
+    depth = (1.0 + torch.rand(2, 1, H, W, generator=seeded(7), dtype=torch.float64))
     points, grey0, valid = rgbd_to_points(rgb, depth, intr, rays=rays)
     R = torch.from_numpy(Rotation.from_rotvec([[0.004, -0.006, 0.002], [-0.015, 0.01, 0.008]]).as_matrix())
     exact, ok_e = sample_grey(rgb, points, valid, R, intr, grey_image=grey0, distortion=dist)

@@ -10,11 +10,9 @@ from torchslam.kcc import rgbd_to_points
 from torchslam.kcc._select import where
 from torchslam.systems.nislam.system import _stack_rows
 
+from tests._helpers import seeded
+
 _BITS = {torch.float32: torch.int32, torch.float64: torch.int64}
-
-
-def _gen(seed=0):
-    return torch.Generator().manual_seed(seed)
 
 
 def _bits(t):
@@ -23,7 +21,7 @@ def _bits(t):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_where_matches_torch_where_bit_for_bit(dtype):
-    g = _gen()
+    g = seeded()
     a = torch.randn(3, 4, 5, dtype=dtype, generator=g)
     b = torch.randn(3, 4, 5, dtype=dtype, generator=g)
     a[0, 0, 0], a[0, 0, 1], a[0, 0, 2], b[1, 1, 1] = math.nan, math.inf, -0.0, -math.inf
@@ -37,21 +35,21 @@ def test_where_matches_torch_where_bit_for_bit(dtype):
 
 
 def test_where_keeps_gradients():
-    a = torch.randn(6, generator=_gen(1), dtype=torch.float64, requires_grad=True)
+    a = torch.randn(6, generator=seeded(1), dtype=torch.float64, requires_grad=True)
     mask = torch.tensor([True, False, True, True, False, False])
     where(mask, a, 0.0).sum().backward()
     assert torch.equal(a.grad, mask.to(torch.float64))
 
 
 def test_distort_planes_equals_distort_normalized():
-    xy = torch.randn(2, 100, 2, generator=_gen(2)) * 0.4
+    xy = torch.randn(2, 100, 2, generator=seeded(2)) * 0.4
     d = (0.262383, -0.953104, -0.005358, 0.002628, 1.163314)
     xd, yd = distort_planes(xy[..., 0].contiguous(), xy[..., 1].contiguous(), d)
     assert torch.equal(torch.stack([xd, yd], -1), distort_normalized(xy, d))
 
 
 def test_rgbd_points_are_coordinate_planes_and_stack_without_copy():
-    g = _gen(3)
+    g = seeded(3)
     rgb = torch.rand(3, 3, 6, 8, generator=g)
     depth = torch.rand(3, 1, 6, 8, generator=g) + 0.5
     depth[0, 0, 0, 0], depth[1, 0, 1, 1], depth[2, 0, 2, 2] = 0.0, math.nan, math.inf

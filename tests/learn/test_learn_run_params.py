@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 
@@ -18,7 +17,7 @@ from torchslam.learn import PairWeightNet, learnable, load_checkpoint, save_chec
 from torchslam.systems.nislam import NISlamConfig
 from torchslam.app.run import resolve_config
 
-from ..conftest import REPO_ROOT
+from tests._helpers import load_script
 
 SMALL = ["--set", "data.synthetic.frames=6", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120",
          "--set", "kcc.ortho_height=90", "--set", "kcc.ortho_width=120", "--set", "min_valid_points=100"]
@@ -97,15 +96,8 @@ def test_run_rejects_bad_checkpoints_naming_file_and_key(tmp_path, capsys):
         resolve_config("nislam", None, [], params=unknown)
 
 
-def _train_script():
-    spec = importlib.util.spec_from_file_location("torchslam_train_script", REPO_ROOT / "scripts" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_train_script_pairnet_writes_checkpoint_metrics_and_events(tmp_path, capsys):
-    script = _train_script()
+    script = load_script("train")
     out = tmp_path / "pairnet"
     rc = script.main(["--what", "pairnet", "--out", str(out), "--steps", "3", "--train-seeds", "0-1", "--val-seeds", "100"])
     assert rc == 0
@@ -121,7 +113,7 @@ def test_train_script_pairnet_writes_checkpoint_metrics_and_events(tmp_path, cap
 
 
 def test_train_script_kcc_checkpoint_runs(tmp_path, capsys):
-    script = _train_script()
+    script = load_script("train")
     out = tmp_path / "kcc"
     rc = script.main(["--what", "kcc", "--out", str(out), "--steps", "2", "--train-seeds", "0", "--val-seeds", "100"])
     assert rc == 0

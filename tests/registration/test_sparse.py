@@ -26,12 +26,13 @@ from torchslam.registration.sparse import (
     frame_features,
     isometry_filter,
     ransac_rigid,
-    ransac_rigid_reference,
     ransac_samples,
     refine_rigid,
     register_sparse,
     register_sparse_batch,
 )
+
+from tests._references import ransac_rigid_reference
 
 F64 = torch.float64
 

@@ -27,8 +27,7 @@ from torchslam.app.batch import (
 )
 from torchslam.app.run import DataConfig
 
-from ..conftest import REPO_ROOT
-from ._sequences import EditedSequence, interrupt_at
+from tests._helpers import REPO_ROOT, EditedSequence, interrupt_at
 
 # Tiny synthetic sequences; NI-SLAM's orthographic map shrunk to match the 160 x 120 images.
 SMALL = [

@@ -6,11 +6,9 @@ import pytest
 import torch
 
 from torchslam.config import config_from_dict, config_to_dict, load_config
-from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError, TorchSlamError
-from torchslam.eval import ate
 from torchslam.fastgo import PairStats
 from torchslam.fastgo.synthetic import make_correspondences
 from torchslam.geometry import se3_exp, se3_inverse
@@ -23,16 +21,9 @@ from torchslam.systems.gcslam.config import Frontend
 from torchslam.systems.monitor import Monitor
 from torchslam.registration.sparse import FrameFeatures
 
-from ..conftest import REPO_ROOT
+from tests._helpers import REPO_ROOT, run_gcslam as _run
 
 SMALL = dict(width=320, height=240)
-
-
-def _run(seq, **cfg):
-    cfg = config_from_dict(GCSlamConfig, {"threaded": False, **cfg})
-    result = run_sequence(GCSlam(cfg), seq)
-    out = result.output
-    return result, ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
 
 
 def test_frontend_option_is_an_enum_that_takes_the_strings():
@@ -193,7 +184,7 @@ def test_lost_frames_are_counted_apart_from_tracked_ones(tmp_path):
     from torchslam.cli import _run_line
     from torchslam.app.outputs import write_run
 
-    from ._sequences import EditedSequence
+    from tests._helpers import EditedSequence
 
     base = generate_sequence(SyntheticConfig(frames=20, trajectory="translate", seed=4, **SMALL))
     g = torch.Generator().manual_seed(0)

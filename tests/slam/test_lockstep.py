@@ -13,7 +13,7 @@ from torchslam.systems import RunResult, run_sequence
 from torchslam.systems.lockstep import default_max_batch, run_lockstep
 from torchslam.systems.nislam import NISlam, NISlamConfig, track_frames
 
-from ._sequences import EditedSequence, interrupt_at
+from tests._helpers import EditedSequence, interrupt_at
 
 TINY = dict(width=160, height=120, fps=10.0)
 CFG = config_from_dict(NISlamConfig, {"min_valid_points": 100, "kcc": {"ortho_height": 90, "ortho_width": 120}})

@@ -7,26 +7,16 @@ import pytest
 import torch
 
 from torchslam.config import config_from_dict, load_config
-from torchslam.data import Frame, Trajectory
+from torchslam.data import Frame
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError
-from torchslam.eval import ate
 from torchslam.systems import run_sequence
 from torchslam.systems.nislam import LoopConfig, NISlam, NISlamConfig
 
-from ..conftest import REPO_ROOT
-from ._sequences import EditedSequence
+from tests._helpers import REPO_ROOT, EditedSequence, run_nislam as _run
 
 SMALL = dict(width=320, height=240)
-
-
-
-def _run(seq, **cfg):
-    cfg = config_from_dict(NISlamConfig, cfg)
-    result = run_sequence(NISlam(cfg), seq)
-    out = result.output
-    return result, ate(Trajectory(out.timestamps, out.T_wc), seq.groundtruth)
 
 
 def test_yaml_defaults_equal_code_defaults():

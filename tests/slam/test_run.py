@@ -14,7 +14,7 @@ from torchslam.systems import run_sequence
 from torchslam.systems.nislam import NISlam, NISlamConfig
 from torchslam.app.outputs import METRIC_KEYS, write_run
 
-from ._sequences import EditedSequence, interrupt_at
+from tests._helpers import EditedSequence, interrupt_at
 
 SMALL = ["--set", "data.synthetic.frames=12", "--set", "data.synthetic.width=160", "--set", "data.synthetic.height=120"]
 
@@ -55,7 +55,7 @@ def test_ctrl_c_keeps_what_was_computed(tmp_path):
 
 
 def shared_data_or_skip():
-    from ..conftest import data_root
+    from tests._helpers import data_root
 
     root = data_root() / "tum_fr1_xyz"
     if not (root / "rgb.txt").is_file():
@@ -231,7 +231,7 @@ def test_an_odd_frame_of_a_real_sequence_is_skipped_and_counted(tmp_path, capsys
     import cv2
     import numpy as np
 
-    from ._sequences import copy_tum_frames
+    from tests._helpers import copy_tum_frames
 
     from torchslam.data import TUMSequence
 

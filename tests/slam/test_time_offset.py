@@ -16,7 +16,7 @@ from torchslam.systems import run_sequence
 from torchslam.systems.nislam import NISlam, NISlamConfig
 from torchslam.app.calibrate_time import estimate_attitude_time_offset, rotation_agreement
 
-from ._sequences import EditedSequence
+from tests._helpers import EditedSequence
 
 
 def _spinning_stream(rate_hz: float = 200.0, seconds: float = 3.0) -> AttitudeStream:

@@ -1,6 +1,6 @@
 """FastGO: global registration of keyframes from per-pair second-order statistics (GC-SLAM back-end)."""
 
-from .linearize import PairLinearization, assemble, linearize, pair_cost, reference_linearize, residual_curvature
+from .linearize import PairLinearization, assemble, linearize, pair_cost, residual_curvature
 from .loops import LoopDecision, accept_loop_closures, accept_loop_closures_batch
 from .optimize import (
     FastGOBatchResult,
@@ -31,6 +31,5 @@ __all__ = [
     "optimize_batch",
     "pair_cost",
     "pair_status",
-    "reference_linearize",
     "residual_curvature",
 ]

@@ -16,13 +16,10 @@ and residual ``r = q_i - q_j`` (FastGO Eq. (2)). With the left perturbation
 The cost is evaluated in the equivalent centred form
 ``n |mean residual|^2 + tr C_ii + tr C_jj - 2 tr(R_i C_ij R_j^T)`` (``C`` the moments about the
 pair's centroids), which loses far fewer digits when the poses are far from the world origin.
-
-:func:`reference_linearize` linearises every correspondence and sums, for tests and benchmarks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -33,7 +30,7 @@ from ..geometry.lie import _skew, _vex
 from ..optim.blocksparse import BlockSparseMatrix
 from .stats import PairStats
 
-__all__ = ["PairLinearization", "linearize", "pair_cost", "assemble", "residual_curvature", "reference_linearize"]
+__all__ = ["PairLinearization", "linearize", "pair_cost", "assemble", "residual_curvature"]
 
 
 @dataclass(frozen=True)
@@ -205,67 +202,3 @@ def assemble(lin: PairLinearization, pairs: Tensor, num_nodes: int) -> tuple[Blo
     diag = lin.H_ii.new_zeros(num_nodes, 6, 6).index_add(0, i, lin.H_ii).index_add(0, j, lin.H_jj)
     g = lin.g_i.new_zeros(num_nodes, 6).index_add(0, i, lin.g_i).index_add(0, j, lin.g_j)
     return BlockSparseMatrix(diag.to(dt), lin.H_ij, i.contiguous(), j.contiguous()), g
-
-
-def reference_linearize(
-    T_wc: Tensor,
-    pairs: Tensor,
-    points_i: Sequence[Tensor],
-    points_j: Sequence[Tensor],
-    weights: Sequence[Tensor] | None = None,
-    chunk: int = 1 << 17,
-) -> PairLinearization:
-    """Linearise every correspondence and sum per pair (the O(#correspondences) baseline).
-
-    Vectorised over correspondences (chunked to bound memory); for tests and benchmarks.
-
-    Args:
-        T_wc: (N, 4, 4) keyframe poses.
-        pairs: (M, 2) int64 keyframe indices.
-        points_i: M tensors (K_m, 3) of points in frame i.
-        points_j: M tensors (K_m, 3) of the matching points in frame j.
-        weights: optional M tensors (K_m,) of correspondence weights.
-        chunk: correspondences processed per vectorised step.
-
-    Returns:
-        The same quantities as :func:`linearize`, summed correspondence by correspondence.
-    """
-    check_shape(T_wc, "N 4 4", "T_wc")
-    check_shape(pairs, f"{len(points_i)} 2", "pairs")
-    dt, dev = T_wc.dtype, T_wc.device
-    M = len(points_i)
-    pi = torch.cat(list(points_i)).to(dt)
-    pj = torch.cat(list(points_j)).to(dt)
-    w = None if weights is None else torch.cat(list(weights)).to(dt)
-    lengths = torch.tensor([p.shape[0] for p in points_i], device=dev)
-    seg = torch.repeat_interleave(torch.arange(M, device=dev), lengths)
-    acc = T_wc.new_zeros(M, 6 * 6 * 3 + 12 + 1)
-    eye = torch.eye(3, dtype=dt, device=dev)
-    for s in range(0, pi.shape[0], chunk):
-        sg = seg[s:s + chunk]
-        Ti, Tj = T_wc[pairs[sg, 0]], T_wc[pairs[sg, 1]]
-        qi = (Ti[:, :3, :3] @ pi[s:s + chunk, :, None])[..., 0] + Ti[:, :3, 3]
-        qj = (Tj[:, :3, :3] @ pj[s:s + chunk, :, None])[..., 0] + Tj[:, :3, 3]
-        r = qi - qj
-        K = r.shape[0]
-        Ji = torch.cat([eye.expand(K, 3, 3), -_skew(qi)], -1)  # (K, 3, 6)
-        Jj = -torch.cat([eye.expand(K, 3, 3), -_skew(qj)], -1)
-        wk = torch.ones_like(r[:, 0]) if w is None else w[s:s + chunk]
-        wJi = wk[:, None, None] * Ji
-        wJj = wk[:, None, None] * Jj
-        rows = torch.cat(
-            [
-                (wJi.transpose(-1, -2) @ Ji).reshape(K, 36),
-                (wJi.transpose(-1, -2) @ Jj).reshape(K, 36),
-                (wJj.transpose(-1, -2) @ Jj).reshape(K, 36),
-                (wJi.transpose(-1, -2) @ r[..., None])[..., 0],
-                (wJj.transpose(-1, -2) @ r[..., None])[..., 0],
-                (wk * (r * r).sum(-1))[:, None],
-            ],
-            dim=1,
-        )
-        acc = acc.index_add(0, sg, rows)
-    return PairLinearization(
-        acc[:, :36].reshape(M, 6, 6), acc[:, 36:72].reshape(M, 6, 6), acc[:, 72:108].reshape(M, 6, 6),
-        acc[:, 108:114], acc[:, 114:120], acc[:, 120],
-    )

@@ -13,7 +13,6 @@ The pieces compose as (see each module for equations and conventions)::
     # scene content moved by t = (pred.t_xy, dz.t_z): the frame camera is at -t from the keyframe
 """
 
-from .bench import benchmark_frontend
 from .correlator import (
     ChannelNorm,
     KCCConfig,
@@ -56,7 +55,6 @@ __all__ = [
     "OrthoImages",
     "Peak",
     "Subpixel",
-    "benchmark_frontend",
     "choose_resolution",
     "depth_translation",
     "find_peak",

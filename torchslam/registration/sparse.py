@@ -62,7 +62,6 @@ __all__ = [
     "frame_features",
     "isometry_filter",
     "ransac_rigid",
-    "ransac_rigid_reference",
     "ransac_samples",
     "refine_rigid",
     "register_sparse",
@@ -460,7 +459,7 @@ def _ransac_samples(valid: Tensor, cfg: SparseConfig, seed: int) -> tuple[Tensor
 def ransac_samples(
     valid: Tensor, cfg: SparseConfig | None = None, generator: torch.Generator | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Draw the RANSAC minimal samples of B pairs (shared by the batched and loop versions).
+    """Draw the RANSAC minimal samples of B pairs, the ones :func:`ransac_rigid` fits.
 
     Each hypothesis draws ``cfg.ransac_sample`` distinct matches uniformly among the ``valid``
     ones of its pair.
@@ -567,49 +566,6 @@ def ransac_rigid(
     cfg = SparseConfig() if cfg is None else cfg
     idx, ok = _ransac_samples(valid, cfg, _base_seed(cfg, generator))
     return _ransac_from_samples(p_i, p_j.to(p_i.dtype), valid, idx, ok, cfg)
-
-
-def ransac_rigid_reference(
-    p_i: Tensor,
-    p_j: Tensor,
-    valid: Tensor,
-    cfg: SparseConfig | None = None,
-    generator: torch.Generator | None = None,
-) -> tuple[Tensor, Tensor]:
-    """Loop over pairs and hypotheses doing what :func:`ransac_rigid` does (a test oracle).
-
-    Consumes the same samples (:func:`ransac_samples` with the same base seed), fits each with
-    its own Kabsch call and scores it from explicit residual vectors. Slow; for tests.
-
-    Args and returns as :func:`ransac_rigid`.
-    """
-    dims: dict[str, int] = {}
-    _check_corr(p_i, p_j, valid, dims)
-    cfg = SparseConfig() if cfg is None else cfg
-    p_j = p_j.to(p_i.dtype)
-    B, M = valid.shape
-    idx, ok = _ransac_samples(valid, cfg, _base_seed(cfg, generator))
-    T_out = _eye4(p_i, B)
-    inl_out = torch.zeros_like(valid)
-    for b in range(B):
-        if not bool(ok[b]) or M == 0:
-            continue
-        best_count, best_T = -1, None
-        for h in range(idx.shape[1]):
-            sel = idx[b, h]
-            T = umeyama_alignment(p_j[b, sel][None], p_i[b, sel][None])[0][0]
-            if not bool(torch.isfinite(T).all()):
-                continue
-            r = p_j[b] @ T[:3, :3].T + T[:3, 3] - p_i[b]
-            inl = valid[b] & (r.norm(dim=-1) / p_i[b, :, 2] < cfg.inlier_threshold)
-            count = int(inl.sum())
-            if count > best_count:
-                best_count, best_T = count, T
-        if best_T is not None:
-            T_out[b] = best_T
-            r = p_j[b] @ best_T[:3, :3].T + best_T[:3, 3] - p_i[b]
-            inl_out[b] = valid[b] & (r.norm(dim=-1) / p_i[b, :, 2] < cfg.inlier_threshold)
-    return T_out, inl_out
 
 
 # ---------------------------------------------------------------------------- refinement

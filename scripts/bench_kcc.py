@@ -1,20 +1,29 @@
-"""Micro-benchmark of the NI-SLAM per-frame front-end core: orthographic projection + KCC predict + PSR."""
+"""Micro-benchmark of the NI-SLAM per-frame front-end core: orthographic projection + KCC predict + PSR.
+
+Frames are a smooth random textured surface 1-2 m away, rotated slightly against the keyframe;
+B frames are matched at once. Prints median and best milliseconds per frame for each batch size
+and, with ``--out``, writes them as JSON. Usage::
+
+    python scripts/bench_kcc.py [--batch 1 4 16] [--size 480 640] [--repeats 10] [--device cpu] [--quick]
+"""
 
 from __future__ import annotations
 
+import argparse
+import json
 import statistics
 import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ShapeError
-from ..geometry import so3_exp
-from .correlator import KCCConfig, kcc_features, kcc_predict, kcc_train
-from .ortho import choose_resolution, orthographic_project, rgbd_to_points
-
-__all__ = ["benchmark_frontend"]
+from _bench import sync
+from torchslam.environment import environment_info
+from torchslam.errors import ShapeError
+from torchslam.geometry import so3_exp
+from torchslam.kcc import KCCConfig, choose_resolution, kcc_features, kcc_predict, kcc_train, orthographic_project, rgbd_to_points
 
 
 def _synthetic_rgbd(batch: int, size: tuple[int, int], gen: torch.Generator, dtype, device) -> tuple[Tensor, Tensor]:
@@ -25,11 +34,6 @@ def _synthetic_rgbd(batch: int, size: tuple[int, int], gen: torch.Generator, dty
     rough = torch.rand(batch, 1, 6, 8, generator=gen, dtype=dtype)
     depth = 1.0 + F.interpolate(rough, size=(H, W), mode="bicubic", align_corners=False).clamp(0, 1)
     return rgb.to(device), depth.to(device)
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def benchmark_frontend(
@@ -89,30 +93,30 @@ def benchmark_frontend(
         return orthographic_project(points, grey, valid, rotation, r_k, size)
 
     with torch.no_grad():
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         points, grey, valid = rgbd_to_points(rgb, depth, intrinsics)
         r_k = choose_resolution(points, valid, size, cfg.coverage, cfg.sample_step)
         kf = orthographic_project(points, grey, valid, None, r_k, size)
         z = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes)
         filt = kcc_train(z, cfg.sigma, cfg.lam)
-        _sync(device)
+        sync(device)
         train_ms = (time.perf_counter() - t0) * 1e3
 
         t_ortho: list[float] = []
         t_kcc: list[float] = []
         for i in range(warmup + repeats):
-            _sync(device)
+            sync(device)
             t0 = time.perf_counter()
             ortho = project(rot, r_k)
-            _sync(device)
+            sync(device)
             t1 = time.perf_counter()
             x = kcc_features(ortho.grey, ortho.depth, ortho.valid, cfg.channel_norm, cfg.fill_holes)
             pred = kcc_predict(
                 x, filt, cfg.sigma, r_k, cfg.subpixel, cfg.subpixel_smoothing, cfg.subpixel_iterations, cfg.psr_window
             )
             pred.psr.sum().item()  # forces completion on lazy backends
-            _sync(device)
+            sync(device)
             t2 = time.perf_counter()
             if i >= warmup:
                 t_ortho.append((t1 - t0) * 1e3)
@@ -135,3 +139,38 @@ def benchmark_frontend(
         "best_frames_per_s": 1e3 * B / best,
         "train_ms": train_ms,
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batch", type=int, nargs="+", default=[1, 4, 16], help="frames matched at once (B)")
+    ap.add_argument("--size", type=int, nargs=2, default=[480, 640], metavar=("H", "W"), help="input image size")
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--dtype", choices=["float32", "float64"], default="float32")
+    ap.add_argument("--quick", action="store_true", help="tiny images and orthographic size, two repeats (smoke run)")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    cfg = KCCConfig()
+    size, repeats, warmup = tuple(args.size), args.repeats, args.warmup
+    if args.quick:
+        cfg, size, repeats, warmup = KCCConfig(ortho_height=36, ortho_width=48), (48, 64), 2, 1
+    rows = []
+    for B in args.batch:
+        out = benchmark_frontend(B, size, cfg, repeats, warmup, args.device, getattr(torch, args.dtype))
+        rows.append(out)
+        print(f"  B={B:3d}: {out['total_ms_per_frame']:8.3f} ms/frame median ({out['ortho_ms_per_frame']:.3f} ortho + "
+              f"{out['kcc_ms_per_frame']:.3f} KCC), {out['best_total_ms_per_frame']:.3f} best, "
+              f"train {out['train_ms']:.1f} ms", flush=True)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        result = {"machine": environment_info(), "image_size": list(size), "device": args.device, "dtype": args.dtype,
+                  "ortho": [cfg.ortho_height, cfg.ortho_width], "repeats": repeats, "rows": rows}
+        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

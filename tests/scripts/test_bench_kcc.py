@@ -1,10 +1,18 @@
+"""scripts/bench_kcc.py: the front-end micro-benchmark's figures, its inputs and its command line."""
+
+import json
 import math
 
 import pytest
 import torch
 
 from torchslam.errors import ShapeError
-from torchslam.kcc import KCCConfig, benchmark_frontend
+from torchslam.kcc import KCCConfig
+
+from tests._helpers import load_script
+
+bench_kcc = load_script("bench_kcc")
+benchmark_frontend = bench_kcc.benchmark_frontend
 
 
 def test_benchmark_runs_small_and_reports_consistent_figures():
@@ -26,3 +34,12 @@ def test_benchmark_takes_given_frames_and_needs_depth_with_rgb():
     assert out["batch_size"] == 1
     with pytest.raises(ShapeError, match="depth"):
         benchmark_frontend(cfg=cfg, rgb=rgb)
+
+
+def test_command_line_quick_run_writes_the_figures(tmp_path, capsys):
+    out = tmp_path / "kcc.json"
+    assert bench_kcc.main(["--quick", "--batch", "1", "2", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert [row["batch_size"] for row in result["rows"]] == [1, 2]
+    assert result["image_size"] == [48, 64] and result["ortho"] == [36, 48]
+    assert "B=  2" in capsys.readouterr().out

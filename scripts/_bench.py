@@ -1,0 +1,86 @@
+"""What the benchmarks in scripts/ share: device sync, repeated timing, paths, load, the tests' oracles.
+
+A benchmark imports it as ``from _bench import ...`` (a script's own folder is first on
+``sys.path``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+RESULTS = REPO_ROOT / "scripts" / "results"
+
+
+def data_root() -> Path:
+    """The real sequences: ``$TORCHSLAM_DATA``, else ``../shared/data`` beside the repository."""
+    env = os.environ.get("TORCHSLAM_DATA")
+    return Path(env) if env else REPO_ROOT.parent / "shared" / "data"
+
+
+def sync(device: str | torch.device) -> None:
+    """Wait for the queued work of a CUDA ``device`` (no-op elsewhere), so a clock reads it."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Wall-clock seconds of the timed calls; ``best`` is the least disturbed on a shared machine."""
+
+    seconds: list[float]
+
+    @property
+    def best(self) -> float:
+        return min(self.seconds)
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.seconds)
+
+
+def time_calls(fn: Callable[[], object], repeat: int, device: str | torch.device = "cpu", warmup: int = 1) -> Timing:
+    """Call ``fn`` ``warmup`` times untimed (caches, allocator, lazy imports), then ``repeat`` times timed."""
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    seconds = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        seconds.append(time.perf_counter() - t0)
+    return Timing(seconds)
+
+
+def load_average() -> list[float] | None:
+    """The 1, 5 and 15 minute load averages, or None where the OS has none."""
+    try:
+        return list(os.getloadavg())
+    except (AttributeError, OSError):
+        return None
+
+
+def test_references() -> ModuleType:
+    """``tests/_references.py``, the slow oracles the tests hold, loaded by path.
+
+    The oracles are test code, so they live with the tests; a benchmark that times the library
+    against one loads that file here instead of putting the repository root on ``sys.path``.
+    """
+    name = "tests._references"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "tests" / "_references.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
