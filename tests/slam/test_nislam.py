@@ -122,7 +122,7 @@ def test_attitude_gap_frames_are_not_tracked():
 
 
 def test_bad_config_values_name_the_key():
-    with pytest.raises(ConfigError, match="attitude: 'gyro' is not one of"):
+    with pytest.raises(ConfigError, match="attitude: unknown 'gyro'; valid: auto, imu, simulated, groundtruth"):
         NISlamConfig(attitude="gyro")
     with pytest.raises(ConfigError, match=r"kcc.sigmaa: unknown key"):
         config_from_dict(NISlamConfig, {"kcc": {"sigmaa": 1.0}})
@@ -138,13 +138,13 @@ def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
     on = NISlam(NISlamConfig(pixel_stride=stride))
     on.start(EditedSequence(seq, camera=cam))
     full = undistorted_rays(cam, torch.float32).view(cam.height, cam.width, 2)
-    assert torch.equal(on.rays, full[::stride, ::stride].reshape(-1, 2)) and on.distortion == cam.distortion
+    assert torch.equal(on.camera.rays, full[::stride, ::stride].reshape(-1, 2)) and on.camera.distortion == cam.distortion
     off = NISlam(NISlamConfig(pixel_stride=stride, undistort=False))
     off.start(EditedSequence(seq, camera=cam))
-    assert off.rays is None and off.distortion is None
+    assert off.camera.rays is None and off.camera.distortion is None
     plain = NISlam(NISlamConfig(pixel_stride=stride))
     plain.start(seq)  # no distortion: the pinhole path, untouched
-    assert plain.rays is None and plain.distortion is None
+    assert plain.camera.rays is None and plain.camera.distortion is None
     # Tracking runs along the rays: the first frame's keyframe points follow them.
     on.track(seq[0])
     assert len(on.keyframes) == 1

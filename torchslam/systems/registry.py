@@ -14,7 +14,27 @@ from typing import Any
 
 from ..errors import ConfigError
 
-__all__ = ["KNOWN_SYSTEMS", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
+__all__ = ["KNOWN_SYSTEMS", "LockstepSpec", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
+
+
+@dataclass(frozen=True)
+class LockstepSpec:
+    """How a system advances many sequences together (``systems.lockstep``).
+
+    Attributes:
+        step: ``step(systems, frames, max_batch) -> StepReport``: one frame of every started system.
+        build: ``build(config, device, monitor)`` of a system for lockstep runs, or None for
+            ``SystemSpec.build``.
+        max_batch: ``max_batch(config, device, n) -> int``, sequences per batched call when none is
+            given, or None for all ``n``.
+        holds_all: every sequence's per-frame state is held at once (the memory check counts
+            ``n`` sequences; else one).
+    """
+
+    step: Callable[..., Any]
+    build: Callable[..., Any] | None = None
+    max_batch: Callable[..., int] | None = None
+    holds_all: bool = False
 
 
 @dataclass(frozen=True)
@@ -28,6 +48,8 @@ class SystemSpec:
         build: ``build(config, device, monitor) -> SlamSystem``.
         memory: ``memory(config, camera, batch) -> {part: (bytes, settings behind it)}``, the
             system's own peak-memory parts beyond the input images (``systems.memory``), or None.
+        lockstep: how it runs many sequences at once, or None: one after another in each step
+            (``track``).
     """
 
     name: str
@@ -35,6 +57,7 @@ class SystemSpec:
     config_cls: type
     build: Callable[..., Any]
     memory: Callable[..., dict[str, tuple[int, str]]] | None = None
+    lockstep: LockstepSpec | None = None
 
 
 # name -> (module, attribute holding its SystemSpec, what it is)

@@ -37,6 +37,7 @@ Convention:
 from __future__ import annotations
 
 import bisect
+import functools
 import logging
 import queue
 import threading
@@ -79,7 +80,7 @@ from ..base import StepReport, SystemOutput, add_stage_ms, empty_output, frame_p
 from ..monitor import Monitor
 from ..framelog import voxel_downsample
 from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
-from ..registry import SystemSpec
+from ..registry import LockstepSpec, SystemSpec
 
 __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframes", "track_frames"]
 
@@ -784,4 +785,7 @@ SPEC = SystemSpec(
     config_cls=GCSlamConfig,
     build=GCSlam,
     memory=_memory,
+    # Lockstep: each frame tracked on its own, the new keyframes of all sequences optimised in
+    # one FastGO call (``track_frames``, with the optimisation inline instead of in a thread).
+    lockstep=LockstepSpec(step=track_frames, build=functools.partial(GCSlam, deferred=True)),
 )
