@@ -23,7 +23,6 @@ from .correlator import (
     KCCFilter,
     KCCPrediction,
     KernelCorrelator,
-    Peak,
     Subpixel,
     find_peak,
     kcc_features,
@@ -31,9 +30,6 @@ from .correlator import (
     kcc_response,
     kcc_train,
     kernel_correlation,
-    peak_to_sidelobe,
-    shift_variance,
-    soft_argmax,
     spectral_energy,
 )
 from .frontend import TrackResult, correlator_for, keyframe_filter, track_step
@@ -47,6 +43,7 @@ from .ortho import (
     sample_grey,
     sample_grey_rotated,
 )
+from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
     "ChannelNorm",
