@@ -23,7 +23,7 @@ from _bench import sync
 from torchslam.environment import environment_info
 from torchslam.errors import ShapeError
 from torchslam.geometry import so3_exp
-from torchslam.kcc import KCCConfig, choose_resolution, kcc_features, kcc_predict, kcc_train, orthographic_project, rgbd_to_points
+from torchslam.kcc import KCCConfig, choose_resolution, correlator_for, kcc_features, keyframe_filter, orthographic_project, rgbd_to_points
 
 
 def _synthetic_rgbd(batch: int, size: tuple[int, int], gen: torch.Generator, dtype, device) -> tuple[Tensor, Tensor]:
@@ -86,6 +86,7 @@ def benchmark_frontend(
         f = 525.0 * W / 640.0
         intrinsics = torch.tensor([f, f, (W - 1) / 2, (H - 1) / 2], dtype=dtype, device=device)
     size = (cfg.ortho_height, cfg.ortho_width)
+    correlator = correlator_for(cfg).to(device)
     rot = so3_exp(0.02 * torch.randn(B, 3, generator=gen, dtype=dtype).to(device))
 
     def project(rotation, r_k):
@@ -98,8 +99,7 @@ def benchmark_frontend(
         points, grey, valid = rgbd_to_points(rgb, depth, intrinsics)
         r_k = choose_resolution(points, valid, size, cfg.coverage, cfg.sample_step)
         kf = orthographic_project(points, grey, valid, None, r_k, size)
-        z = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes)
-        filt = kcc_train(z, cfg.sigma, cfg.lam)
+        filt = keyframe_filter(kf, correlator)
         sync(device)
         train_ms = (time.perf_counter() - t0) * 1e3
 
@@ -112,9 +112,7 @@ def benchmark_frontend(
             sync(device)
             t1 = time.perf_counter()
             x = kcc_features(ortho.grey, ortho.depth, ortho.valid, cfg.channel_norm, cfg.fill_holes)
-            pred = kcc_predict(
-                x, filt, cfg.sigma, r_k, cfg.subpixel, cfg.subpixel_smoothing, cfg.subpixel_iterations, cfg.psr_window
-            )
+            pred = correlator(x, filt, r_k)
             pred.psr.sum().item()  # forces completion on lazy backends
             sync(device)
             t2 = time.perf_counter()

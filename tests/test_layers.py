@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import REPO_ROOT
+from ._helpers import REPO_ROOT
 
 PACKAGE = REPO_ROOT / "torchslam"
 ALIASES = "torchslam.slam"

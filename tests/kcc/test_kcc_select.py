@@ -8,7 +8,7 @@ import torch
 from torchslam.geometry.camera import distort_normalized, distort_planes
 from torchslam.kcc import rgbd_to_points
 from torchslam.kcc._select import where
-from torchslam.systems.nislam.system import _stack_rows
+from torchslam.systems.batching import stack_rows as _stack_rows
 
 from tests._helpers import seeded
 

@@ -75,14 +75,19 @@ def test_a_failing_sequence_does_not_stop_the_others(monkeypatch):
 
     # A failure inside the batched tracking call: the call is repeated per sequence and only the
     # sequence that caused it is dropped.
-    original = NISlam._track_inputs
-
-    def failing_inputs(self, work):
-        if self.sequence_name == "fails-in-tracking" and work.frame.index == 5:
+    class _PlantedFilter:  # any use of this keyframe filter fails, inside the batched call
+        def __getattr__(self, name):
             raise RuntimeError("planted failure while stacking the keyframe")
-        return original(self, work)
 
-    monkeypatch.setattr(NISlam, "_track_inputs", failing_inputs)
+    original = NISlam.start_match
+
+    def failing_request(self, input, cloud):
+        request = original(self, input, cloud)
+        if self.sequence_name == "fails-in-tracking" and input.frame.index == 5:
+            return dataclasses.replace(request, kf_filter=_PlantedFilter())
+        return request
+
+    monkeypatch.setattr(NISlam, "start_match", failing_request)
     seqs = [
         good,
         EditedSequence(short, bad_frame),
@@ -112,7 +117,7 @@ def test_bad_arguments_name_themselves():
     seqs = _sequences()[:1]
     with pytest.raises(ConfigError, match="sequences: expected a non-empty list"):
         run_lockstep(CFG, [])
-    with pytest.raises(ConfigError, match="system_cfg: expected an NISlamConfig"):
+    with pytest.raises(ConfigError, match="system_cfg: expected the config of an available system, got dict"):
         run_lockstep({"attitude": "imu"}, seqs)
     with pytest.raises(ConfigError, match=r"monitors: expected one monitor per sequence \(1\), got 2"):
         run_lockstep(CFG, seqs, monitors=[None, None])

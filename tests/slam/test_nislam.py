@@ -112,7 +112,7 @@ def test_attitude_gap_frames_are_not_tracked():
 
 
 def test_bad_config_values_name_the_key():
-    with pytest.raises(ConfigError, match="attitude: 'gyro' is not one of"):
+    with pytest.raises(ConfigError, match="attitude: unknown 'gyro'; valid: auto, imu, simulated, groundtruth"):
         NISlamConfig(attitude="gyro")
     with pytest.raises(ConfigError, match=r"kcc.sigmaa: unknown key"):
         config_from_dict(NISlamConfig, {"kcc": {"sigmaa": 1.0}})
@@ -128,13 +128,13 @@ def test_undistort_uses_the_cameras_rays_at_the_kept_pixels(stride):
     on = NISlam(NISlamConfig(pixel_stride=stride))
     on.start(EditedSequence(seq, camera=cam))
     full = undistorted_rays(cam, torch.float32).view(cam.height, cam.width, 2)
-    assert torch.equal(on.rays, full[::stride, ::stride].reshape(-1, 2)) and on.distortion == cam.distortion
+    assert torch.equal(on.camera.rays, full[::stride, ::stride].reshape(-1, 2)) and on.camera.distortion == cam.distortion
     off = NISlam(NISlamConfig(pixel_stride=stride, undistort=False))
     off.start(EditedSequence(seq, camera=cam))
-    assert off.rays is None and off.distortion is None
+    assert off.camera.rays is None and off.camera.distortion is None
     plain = NISlam(NISlamConfig(pixel_stride=stride))
     plain.start(seq)  # no distortion: the pinhole path, untouched
-    assert plain.rays is None and plain.distortion is None
+    assert plain.camera.rays is None and plain.camera.distortion is None
     # Tracking runs along the rays: the first frame's keyframe points follow them.
     on.track(seq[0])
     assert len(on.keyframes) == 1
@@ -159,3 +159,35 @@ def test_frames_on_the_motion_prior_are_not_counted_as_tracked(tmp_path):
     from torchslam.cli import _run_line
 
     assert "14/16 frames tracked, 2 on motion prior," in _run_line("nislam", m)
+
+
+def test_keyframe_policy_decides_in_one_place():
+    from torchslam.systems.nislam.policy import Action, KeyframePolicy
+
+    policy = KeyframePolicy.of(NISlamConfig())
+    assert (policy.T_K, policy.T_M, policy.max_jump_m) == (50.0, 100.0, 0.1)
+    here, far = torch.zeros(3, dtype=torch.float64), torch.tensor([0.2, 0.0, 0.0], dtype=torch.float64)
+    # Tracked, fused above T_M only.
+    assert policy.decide(120.0, True, here, here, can_retry=True).fuse
+    v = policy.decide(80.0, True, here, None, can_retry=True)
+    assert v.action is Action.TRACKED and not v.fuse
+    # Lost (PSR, depth or a jump): retried where a well-tracked frame exists, else a new keyframe.
+    for psr, ok, pos in ((40.0, True, here), (80.0, False, here), (80.0, True, far)):
+        assert policy.decide(psr, ok, pos, here, can_retry=True).action is Action.RETRY
+        v = policy.decide(psr, ok, pos, here, can_retry=False)
+        assert v.action is Action.NEW_KEYFRAME and v.use_prior
+    # Without a prediction there is no prior to fall back on; without lost_uses_prior only a jump uses it.
+    assert not policy.decide(40.0, True, here, None, can_retry=False).use_prior
+    strict = KeyframePolicy.of(NISlamConfig(lost_uses_prior=False))
+    assert not strict.decide(40.0, True, here, here, can_retry=False).use_prior
+    assert strict.decide(80.0, True, far, here, can_retry=False).use_prior
+
+
+def test_options_are_enums_accepting_todays_strings():
+    from torchslam.systems.nislam import AttitudeSource, Gravity
+
+    cfg = NISlamConfig(attitude="groundtruth", gravity="-z")
+    assert cfg.attitude is AttitudeSource.GROUNDTRUTH and cfg.gravity is Gravity.NEG_Z
+    assert cfg.attitude == "groundtruth"
+    with pytest.raises(ConfigError, match="gravity: unknown 'w'; valid: auto, x, -x, y, -y, z, -z"):
+        NISlamConfig(gravity="w")

@@ -11,6 +11,9 @@ The pieces compose as (see each module for equations and conventions)::
     pred = kcc_predict(kcc_features(fr.grey, fr.depth, fr.valid), filt, sigma, r_k)
     dz = depth_translation(fr, kf, pred.index)
     # scene content moved by t = (pred.t_xy, dz.t_z): the frame camera is at -t from the keyframe
+
+``frontend`` holds that recipe as two calls taking a config (or a ``KernelCorrelator``):
+``keyframe_filter(kf_map, cfg)`` for the training lines and ``track_step(...)`` for the rest.
 """
 
 from .correlator import (
@@ -19,7 +22,6 @@ from .correlator import (
     KCCFilter,
     KCCPrediction,
     KernelCorrelator,
-    Peak,
     Subpixel,
     find_peak,
     kcc_features,
@@ -27,11 +29,9 @@ from .correlator import (
     kcc_response,
     kcc_train,
     kernel_correlation,
-    peak_to_sidelobe,
-    shift_variance,
-    soft_argmax,
     spectral_energy,
 )
+from .frontend import TrackResult, correlator_for, keyframe_filter, track_step
 from .fusion import DepthStatistic, DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
 from .ortho import (
     OrthoImages,
@@ -42,6 +42,7 @@ from .ortho import (
     sample_grey,
     sample_grey_rotated,
 )
+from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
     "ChannelNorm",
@@ -55,7 +56,9 @@ __all__ = [
     "OrthoImages",
     "Peak",
     "Subpixel",
+    "TrackResult",
     "choose_resolution",
+    "correlator_for",
     "depth_translation",
     "find_peak",
     "fuse_keyframe",
@@ -65,6 +68,7 @@ __all__ = [
     "kcc_response",
     "kcc_train",
     "kernel_correlation",
+    "keyframe_filter",
     "keyframe_map",
     "orthographic_project",
     "peak_to_sidelobe",
@@ -75,4 +79,5 @@ __all__ = [
     "shift_variance",
     "soft_argmax",
     "spectral_energy",
+    "track_step",
 ]

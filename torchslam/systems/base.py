@@ -1,16 +1,17 @@
-"""What every SLAM system provides, and the loop that drives one over a sequence.
+"""What every SLAM system provides, and the one loop that drives systems over sequences.
 
 A system is fed frames one at a time (``track``) and returns everything it estimated at the end
-(``finish``). The driver measures time spent waiting for frames (decode) separately from time
-spent inside the system (compute), turns Ctrl-C into a clean stop that keeps what was computed,
-and counts frames that the sequence had to skip.
+(``finish``). The driver (``drive``; ``run_sequence`` is its B = 1 case, ``lockstep.run_lockstep``
+its many-sequence front) measures time spent waiting for frames (decode) separately from time
+spent inside the systems (compute), turns Ctrl-C into a clean stop that keeps what was computed,
+and counts frames that the sequences had to skip.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -23,8 +24,8 @@ from ..errors import ConfigError
 from .memory import check_run_memory
 
 __all__ = [
-    "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "empty_output", "frame_poses",
-    "resample_poses", "run_sequence",
+    "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "drive", "empty_output", "frame_poses",
+    "resample_poses", "run_sequence", "track_each",
 ]
 
 logger = logging.getLogger(__name__)
@@ -154,13 +155,13 @@ def run_sequence(
     max_frames: int | None = None,
     on_frame: Callable[[int], None] | None = None,
 ) -> RunResult:
-    """Drive ``system`` over ``sequence`` and return its output and timings.
+    """Drive ``system`` over ``sequence`` and return its output and timings: ``drive`` with B = 1.
 
     Ctrl-C (``KeyboardInterrupt``) stops the loop; the system is still asked to ``finish`` so
     the frames processed so far are returned with ``interrupted=True``.
 
     Args:
-        system: the SLAM system.
+        system: the SLAM system (not started).
         sequence: frames to process, in order.
         progress: optional wrapper around the frame iterator (e.g. a progress bar).
         max_frames: stop after this many frames.
@@ -169,33 +170,162 @@ def run_sequence(
 
     Raises:
         InsufficientMemoryError: before the first frame is read, when the configuration's
-            estimated memory exceeds the device's (``slam.memory``).
+            estimated memory exceeds the device's (``systems.memory``).
+        Whatever the system's ``start``, ``track`` or ``finish``, or reading a frame, raised.
     """
-    check_run_memory(system, [getattr(sequence, "camera", None)])
-    frames: Iterable[Frame] = iter(sequence)
-    if progress is not None:
-        frames = progress(frames)
-    system.start(sequence)
-    processed, compute_s, interrupted = 0, 0.0, False
-    t_start = time.perf_counter()
-    try:
-        for frame in frames:
-            if max_frames is not None and processed >= max_frames:
-                break
-            t0 = time.perf_counter()
+    (result,) = drive(
+        [system], [sequence], track_each, progress=progress, max_frames=max_frames,
+        on_frame=None if on_frame is None else (lambda i, n: on_frame(n)),
+    )
+    if isinstance(result, BaseException):
+        raise result
+    return result
+
+
+def track_each(systems: list[SlamSystem], frames: list[Frame], max_batch: int | None = None) -> StepReport:
+    """The step of a system with no batched step: ``track`` of one system after the other."""
+    errors: list[Exception | None] = [None] * len(systems)
+    seconds = [0.0] * len(systems)
+    for k, (system, frame) in enumerate(zip(systems, frames)):
+        t0 = time.perf_counter()
+        try:
             system.track(frame)
-            compute_s += time.perf_counter() - t0
-            processed += 1
-            if on_frame is not None:
-                on_frame(processed)
+        except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
+            errors[k] = exc
+        seconds[k] = time.perf_counter() - t0
+    return StepReport(errors=errors, compute_s=seconds)
+
+
+def drive(
+    systems: list[SlamSystem],
+    sequences: list[Sequence],
+    step: Callable[[list, list[Frame], int | None], StepReport],
+    max_batch: int | None = None,
+    progress: Callable[[Iterable[Frame]], Iterable[Frame]] | None = None,
+    max_frames: int | None = None,
+    on_frame: Callable[[int, int], None] | None = None,
+    memory_batch: int = 1,
+) -> list[RunResult | BaseException]:
+    """The one driver: run built systems over their sequences, one frame of each per step.
+
+    In order: the memory check (before any frame is read), ``start`` of every system, then steps
+    of ``step(systems, frames, max_batch)`` over the systems that still have frames, each system
+    finished as its sequence runs out (which frees its state), and ``RunResult``s built with the
+    frames the sequences skipped. A sequence whose start, frame read, step or finish raises is
+    returned as that exception; the others go on. Ctrl-C stops every sequence, finishes each
+    with what it has computed and marks it ``interrupted``.
+
+    Timing:
+        ``wall_s`` of every result is the group's wall-clock time, from the start of the first
+        sequence to the last finish: the frames of all sequences were interleaved, so no shorter
+        span belongs to one of them (``fps_end_to_end`` is thus a sequence's share of the group).
+        ``compute_s`` is a sequence's own work (``start``, its part of every step, ``finish``):
+        in a batched step its own phases plus an equal share of each batched call it took part
+        in (``StepReport.compute_s``). Time spent waiting for frames (decode) and in ``on_frame``
+        is in neither share but is in ``wall_s``.
+
+    Args:
+        systems: one built, not started system per sequence.
+        sequences: the sequences.
+        step: advances started systems by one frame each (``track_each``, or a system's batched
+            step such as ``nislam.track_frames``).
+        max_batch: passed to ``step``.
+        progress: wrapper around each sequence's frame iterator (e.g. a progress bar).
+        max_frames: stop each sequence after this many frames.
+        on_frame: ``on_frame(i, processed)`` after each frame of sequence ``i``, outside the timers.
+        memory_batch: sequences whose state the memory check counts at once.
+
+    Returns:
+        Per sequence, in order, its ``RunResult`` or the exception that stopped it.
+
+    Raises:
+        InsufficientMemoryError: the configuration needs more memory than the device has.
+    """
+    n = len(sequences)
+    check_run_memory(systems[0], [getattr(s, "camera", None) for s in sequences], batch=memory_batch)
+    live: list[SlamSystem | None] = list(systems)
+    failed: list[BaseException | None] = [None] * n
+    outputs: list[SystemOutput | None] = [None] * n
+    frames_in: list[Iterator[Frame] | None] = [None] * n
+    processed = [0] * n
+    compute = [0.0] * n
+    interrupted = False
+    t_start = time.perf_counter()
+
+    def finish(i: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            outputs[i] = live[i].finish()
+        except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
+            failed[i] = exc
+            logger.warning("%s: finish failed: %s", sequences[i].name, exc)
+        live[i] = None  # its state is no longer needed
+        compute[i] += time.perf_counter() - t0
+
+    active: list[int] = []
+    try:
+        for i, seq in enumerate(sequences):
+            t0 = time.perf_counter()
+            try:
+                frames: Iterable[Frame] = iter(seq)
+                if progress is not None:
+                    frames = progress(frames)
+                frames_in[i] = iter(frames)
+                live[i].start(seq)
+                active.append(i)
+            except Exception as exc:  # noqa: BLE001 - reported in the sequence's place
+                failed[i] = exc
+                logger.warning("%s: start failed: %s", seq.name, exc)
+            compute[i] += time.perf_counter() - t0
+        while active:
+            stepping, frames_now = [], []
+            for i in active:
+                frame = None
+                if max_frames is None or processed[i] < max_frames:
+                    try:
+                        frame = next(frames_in[i])
+                    except StopIteration:
+                        pass
+                    except Exception as exc:  # noqa: BLE001 - a sequence that cannot be read stops alone
+                        failed[i] = exc
+                        logger.warning("%s: reading frame %d failed: %s", sequences[i].name, processed[i], exc)
+                        continue
+                if frame is None:
+                    finish(i)
+                else:
+                    stepping.append(i)
+                    frames_now.append(frame)
+            if not stepping:
+                break
+            report = step([live[i] for i in stepping], frames_now, max_batch)
+            for k, i in enumerate(stepping):
+                compute[i] += report.compute_s[k]
+                if report.errors[k] is not None:
+                    failed[i] = report.errors[k]
+                    live[i] = None
+                    logger.warning("%s: frame %d failed: %s", sequences[i].name, frames_now[k].index, report.errors[k])
+                else:
+                    processed[i] += 1
+                    if on_frame is not None:
+                        on_frame(i, processed[i])
+            active = [i for i in stepping if failed[i] is None]
     except KeyboardInterrupt:
         interrupted = True
-        logger.warning("interrupted after %d frames; finishing with what was computed", processed)
-    t0 = time.perf_counter()
-    output = system.finish()
-    t_end = time.perf_counter()
-    compute_s += t_end - t0
-    return RunResult.of(sequence, output, processed, t_end - t_start, compute_s, interrupted)
+        logger.warning("interrupted; finishing every sequence with what was computed")
+    for i in range(n):
+        if failed[i] is None and outputs[i] is None and live[i] is not None and frames_in[i] is not None:
+            finish(i)
+    wall_s = time.perf_counter() - t_start
+
+    results: list[RunResult | BaseException] = []
+    for i, seq in enumerate(sequences):
+        if failed[i] is not None:
+            results.append(failed[i])
+            continue
+        # Only a Ctrl-C before its start leaves a sequence without output: it computed nothing.
+        output = outputs[i] if outputs[i] is not None else empty_output()
+        results.append(RunResult.of(seq, output, processed[i], wall_s, compute[i], interrupted))
+    return results
 
 
 def add_stage_ms(stage_ms: dict[str, float], stage: str, t0: float) -> float:

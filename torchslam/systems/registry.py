@@ -1,7 +1,7 @@
 """The SLAM systems torchslam ships, looked up by name.
 
-Each entry names the module that defines the system and the capabilities the application
-switches on (whether it runs in lockstep); a module that is not part of this installation is
+Each entry names the module that defines the system; its ``SystemSpec`` declares what the
+application may switch on (how it runs in lockstep, its memory); a module that is not part of this installation is
 simply not available, and ``run`` says so instead of pretending. Code outside ``systems/``
 reaches a system through this table, not by importing it (the few system-specific exceptions
 are listed in ``tests/test_layers.py``).
@@ -12,12 +12,41 @@ from __future__ import annotations
 import importlib
 import importlib.util
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from ..errors import ConfigError
 
-__all__ = ["DEFAULT_SYSTEM", "KNOWN_SYSTEMS", "SystemEntry", "SystemSpec", "available_systems", "get_system", "spec_for_config"]
+__all__ = [
+    "DEFAULT_SYSTEM",
+    "KNOWN_SYSTEMS",
+    "LockstepSpec",
+    "SystemEntry",
+    "SystemSpec",
+    "available_systems",
+    "get_system",
+    "spec_for_config",
+]
+
+
+@dataclass(frozen=True)
+class LockstepSpec:
+    """How a system advances many sequences together (``systems.lockstep``).
+
+    Attributes:
+        step: ``step(systems, frames, max_batch) -> StepReport``: one frame of every started system.
+        build: ``build(config, device, monitor)`` of a system for lockstep runs, or None for
+            ``SystemSpec.build``.
+        max_batch: ``max_batch(config, device, n) -> int``, sequences per batched call when none is
+            given, or None for all ``n``.
+        holds_all: every sequence's per-frame state is held at once (the memory check counts
+            ``n`` sequences; else one).
+    """
+
+    step: Callable[..., Any]
+    build: Callable[..., Any] | None = None
+    max_batch: Callable[..., int] | None = None
+    holds_all: bool = False
 
 
 @dataclass(frozen=True)
@@ -31,9 +60,8 @@ class SystemSpec:
         build: ``build(config, device, monitor) -> SlamSystem``.
         memory: ``memory(config, camera, batch) -> {part: (bytes, settings behind it)}``, the
             system's own peak-memory parts beyond the input images (``systems.memory``), or None.
-        lockstep: the system runs in ``systems.lockstep.run_lockstep`` (a group of sequences
-            advancing one frame each per step), which ``torchslam batch`` uses for B > 1.
-            ``get_system`` sets it where the system's registry entry declares it.
+        lockstep: how it runs many sequences at once (``systems.lockstep``, which ``torchslam
+            batch`` uses for B > 1), or None: one after another.
     """
 
     name: str
@@ -41,7 +69,7 @@ class SystemSpec:
     config_cls: type
     build: Callable[..., Any]
     memory: Callable[..., dict[str, tuple[int, str]]] | None = None
-    lockstep: bool = False
+    lockstep: LockstepSpec | None = None
 
 
 class SystemEntry(NamedTuple):
@@ -51,22 +79,19 @@ class SystemEntry(NamedTuple):
         module: the module that defines it.
         attr: the module attribute holding its ``SystemSpec``.
         description: what it is, for messages.
-        lockstep: it runs in ``systems.lockstep.run_lockstep`` (see ``SystemSpec.lockstep``).
     """
 
     module: str
     attr: str
     description: str
-    lockstep: bool = False
 
 
 KNOWN_SYSTEMS: dict[str, SystemEntry] = {
     "nislam": SystemEntry(
-        "torchslam.systems.nislam", "SPEC", "NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators",
-        lockstep=True,
+        "torchslam.systems.nislam", "SPEC", "NI-SLAM: non-iterative RGB-D-inertial odometry with kernel cross-correlators"
     ),
     "gcslam": SystemEntry(
-        "torchslam.systems.gcslam", "SPEC", "GC-SLAM: ORB/dense registration with FastGO global optimisation", lockstep=True
+        "torchslam.systems.gcslam", "SPEC", "GC-SLAM: ORB/dense registration with FastGO global optimisation"
     ),
 }
 
@@ -87,7 +112,7 @@ def available_systems() -> list[str]:
 
 
 def get_system(name: str) -> SystemSpec:
-    """Return the spec of system ``name``, with the capabilities its registry entry declares.
+    """Return the spec of system ``name``.
 
     Raises:
         ConfigError: for an unknown name, or a known system that this version does not include,
@@ -103,8 +128,7 @@ def get_system(name: str) -> SystemSpec:
             f"available systems: {listing}"
         )
     entry = KNOWN_SYSTEMS[name]
-    spec: SystemSpec = getattr(importlib.import_module(entry.module), entry.attr)
-    return replace(spec, lockstep=True) if entry.lockstep and not spec.lockstep else spec
+    return getattr(importlib.import_module(entry.module), entry.attr)
 
 
 def spec_for_config(cfg: Any) -> SystemSpec:

@@ -42,6 +42,7 @@ Convention:
 from __future__ import annotations
 
 import bisect
+import functools
 import logging
 import time
 from dataclasses import dataclass
@@ -60,7 +61,7 @@ from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import StepReport, SystemOutput, add_stage_ms, empty_output, frame_poses, resample_poses
 from ..framelog import voxel_downsample
 from ..monitor import Monitor
-from ..registry import SystemSpec
+from ..registry import LockstepSpec, SystemSpec
 from .config import GCSlamConfig
 from .frontend import PreparedFrame, TrackingFrontend, frontend_class, make_frontend
 from .optimizer import Anchor, KeyframeEvent, Optimizer, Worker
@@ -509,4 +510,7 @@ SPEC = SystemSpec(
     config_cls=GCSlamConfig,
     build=GCSlam,
     memory=_memory,
+    # Lockstep: each frame tracked on its own, the new keyframes of all sequences optimised in
+    # one FastGO call (``track_frames``, with the optimisation inline instead of in a thread).
+    lockstep=LockstepSpec(step=track_frames, build=functools.partial(GCSlam, deferred=True)),
 )

@@ -2,18 +2,19 @@
 
 Per frame (NI-SLAM §4–§8), with no iterative optimisation in the front-end:
 
-1. attitude ``R_wi`` from the attitude stream (IMU/AHRS, simulated gyro, or ground truth), with
-   the back-end's correction applied, sampled at the depth image's timestamp where the sequence
-   records one (``Frame.depth_timestamp``; TUM fr1 pairs colour and depth ±15 ms apart);
+1. attitude ``R_wi`` from the attitude stream (IMU/AHRS, simulated gyro, or ground truth;
+   ``attitude``), with the back-end's correction applied, sampled at the depth image's timestamp
+   where the sequence records one (``Frame.depth_timestamp``; TUM fr1 pairs colour and depth
+   ±15 ms apart);
 2. the depth image becomes a point cloud, its grey values taken where the points appear in the
    colour image after the attitude's rotation between the two stamps (``sample_grey``), rotated
    into the keyframe's attitude and projected orthographically at the keyframe's resolution
    ``r_k``;
 3. the kernel cross-correlator trained on the keyframe gives the image shift and its PSR;
-   well-matched pixels give the depth shift; the scene content moved by
+   well-matched pixels give the depth shift (``kcc.track_step``); the scene content moved by
    ``t = (t_xy, t_z)`` in the keyframe attitude frame, so the camera sits at ``-t``;
-4. PSR < T_K makes the frame a new keyframe; PSR > T_M fuses it into the keyframe (moving
-   average, Eq. (23)).
+4. the keyframe policy (``policy.KeyframePolicy``) decides: PSR < T_K makes a new keyframe,
+   PSR > T_M fuses the frame into the keyframe (moving average, Eq. (23)).
 
 Keyframes are remembered by their ORB descriptors in a multi-index hash (no downloaded
 vocabulary). A new keyframe queries it; each candidate is verified by correlating the new
@@ -25,23 +26,21 @@ corrects the attitude stream from then on, so inertial yaw drift is fused with t
 
 Every frame keeps its pose relative to its keyframe and is re-posed after each optimisation.
 Tracked poses belong to the depth instants; the reported trajectory is interpolated from them
-at the frames' (colour) timestamps. On TUM fr1/xyz with ground-truth attitude these three
-timing steps took the ATE from 1.91 cm to 1.43 cm (simulated attitude: 2.4 cm to 1.42 cm).
-A ``NISlam`` instance runs one sequence. Its per-frame work is split into phases so that several
-instances can advance together (``track_frames``, driven by ``slam.lockstep.run_lockstep``): each
-sequence samples its attitude, one batched back-projection and one batched tracking step serve
-all of them, and each applies its own match (keyframes, fusion, loop closure, pose graph).
+at the frames' (colour) timestamps.
+
+A ``NISlam`` instance runs one sequence. Its per-frame work is split into the public phases
+``prepare``, ``start_match`` and ``apply_match`` so that several instances can advance together
+(``step.track_frames``, driven by ``systems.lockstep``; the phase table is in ``step``).
 ``NISlam.track`` is the same with one sequence.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -49,253 +48,35 @@ from torch import Tensor
 from ...backend import edge_residuals, optimize_pose_graph
 from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
-from ...errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_limits
 from ...features import ORBConfig, extract_orb
 from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
-from ...imu import ImuNoise
-from ...imu.attitude import AttitudeStream, groundtruth_attitude, simulated_attitude
 from ...kcc import (
-    KCCConfig,
     KCCFilter,
     KeyframeMap,
-    OrthoImages,
+    TrackResult,
     choose_resolution,
-    depth_translation,
+    correlator_for,
     fuse_keyframe,
-    kcc_features,
-    kcc_predict,
-    kcc_train,
+    keyframe_filter,
     keyframe_map,
     orthographic_project,
-    rgbd_to_points,
-    sample_grey_rotated,
+    track_step,
 )
 from ...loop import MILDConfig, MILDDatabase
 from ...optim import LMConfig
-from ..base import StepReport, SystemOutput, add_stage_ms, frame_poses, resample_poses
-from ..monitor import Monitor
+from ..base import SystemOutput, add_stage_ms, frame_poses, resample_poses
 from ..framelog import voxel_downsample
 from ..memory import NISLAM_BYTES_PER_ORTHO_PIXEL
-from ..registry import SystemSpec
+from ..monitor import Monitor
+from ..registry import LockstepSpec, SystemSpec
+from .attitude import attitude_stream
+from .config import NISlamConfig
+from .policy import Action, KeyframePolicy
+from .step import CameraRig, Cloud, FrameInput, MatchRequest, track_frames
 
-__all__ = ["SPEC", "LoopConfig", "NISlam", "NISlamConfig", "StepReport", "TrackResult", "track_frames", "track_step"]
+__all__ = ["CPU_BATCH_PIXELS", "SPEC", "NISlam"]
 
 logger = logging.getLogger(__name__)
-
-ATTITUDE_CHOICES = ("auto", "imu", "simulated", "groundtruth")
-GRAVITY_CHOICES = ("auto", "x", "-x", "y", "-y", "z", "-z")
-
-
-@dataclass(frozen=True)
-class LoopConfig:
-    """Loop closure on keyframes (NI-SLAM §9).
-
-    Attributes:
-        enabled: look for loops at every new keyframe.
-        orb_features: ORB features kept per keyframe (the paper: 1000).
-        min_separation: candidates must be at least this many keyframes older.
-        top_k: candidates verified per new keyframe.
-        min_score: smallest place-recognition score of a candidate.
-        min_psr: smallest KCC PSR for a verified loop.
-        min_matched: smallest fraction of well-matched orthographic pixels for a verified loop.
-        max_rotation_deg: largest attitude difference between the two keyframes (the
-            orthographic views of two very different attitudes share little).
-        max_odometry_bend_m: reject the loop when, after optimisation, any odometry edge's
-            translation residual exceeds this (the front-end disagrees: §9.2).
-        rotation_sigma_deg: standard deviation of an edge's rotation (attitude) per edge.
-        min_translation_sigma_m: floor of an edge's translation standard deviation.
-    """
-
-    enabled: bool = True
-    orb_features: int = 1000
-    min_separation: int = 8
-    top_k: int = 5
-    min_score: float = 0.05
-    min_psr: float = 30.0
-    min_matched: float = 0.1
-    max_rotation_deg: float = 30.0
-    max_odometry_bend_m: float = 0.05
-    rotation_sigma_deg: float = 0.5
-    min_translation_sigma_m: float = 0.002
-
-    LIMITS: ClassVar[dict[str, Limit]] = {
-        "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
-        "min_psr": NON_NEGATIVE, "min_matched": FRACTION, "max_rotation_deg": Limit(ge=0, le=180),
-        "max_odometry_bend_m": POSITIVE, "rotation_sigma_deg": POSITIVE, "min_translation_sigma_m": POSITIVE,
-    }
-
-    def __post_init__(self) -> None:
-        check_limits(self)
-
-
-@dataclass(frozen=True)
-class NISlamConfig:
-    """Settings of NI-SLAM. Defaults are the paper's where it gives them (σ, λ, T_c, T_d, T_K, T_M).
-
-    Attributes:
-        attitude: where rotations come from: "imu" (the sequence's IMU through the AHRS: the
-            synthetic sequence's, or a TUM-layout folder's ``imu.txt``),
-            "simulated" (gyro + accelerometer simulated on ground truth with noise and bias
-            drift, then the same AHRS), "groundtruth" (what the NI-SLAM authors fed on TUM,
-            which has no gyroscope), or "auto" (imu where the sequence has an IMU stream, else
-            simulated).
-        gravity: world direction of gravity for the simulated attitude; "auto" takes the world
-            axis closest to the mean camera-down direction of the ground truth.
-        sim_gyro_noise: simulated gyro white noise density, rad/s/sqrt(Hz).
-        sim_bias_walk: simulated gyro bias random walk, rad/s^2/sqrt(Hz).
-        sim_seed: seed of the simulated IMU noise.
-        attitude_max_gap: a frame whose attitude would be interpolated across a larger gap of
-            the stream is not tracked (counted in ``metrics.json``), seconds.
-        attitude_time_offset: the attitude of an image stamped ``t`` is the stream's sample at
-            ``t + attitude_time_offset``, seconds: the two clocks' offset, which
-            ``torchslam calibrate-time`` estimates from the images and the stream's rotations
-            (``torchslam calibrate-time``). Trajectories keep the image stamps.
-        pixel_stride: use every n-th pixel in x and y of the depth image (1 = all; 2 quarters
-            the projection cost).
-        min_valid_points: frames with fewer valid depth points are not tracked.
-        max_jump_m: a frame whose position departs from the constant-velocity prediction by
-            more than this is treated like a PSR collapse (beyond the paper: a false
-            correlation peak can score just above T_K while the true peak fades); ``inf``
-            turns the test off.
-        lost_uses_prior: a frame that is lost (PSR < T_K or no depth match) even against the
-            fresh keyframe made from the last well-tracked frame takes the constant-velocity
-            prediction as its position instead of its own correlation estimate, and starts the
-            next keyframe there (beyond the paper; off: only implausible jumps do). On the
-            HoloLens sequence one such frame (PSR 39) carried an 11 cm error into every later
-            keyframe: ATE 5.06 -> 2.03 cm (ground-truth attitude), 3.93 -> 2.22 cm (simulated);
-            the other benchmark sequences never reach this case and are unchanged.
-        grey_at_depth_time: where the depth image was taken at another instant than the colour
-            image (``Frame.depth_timestamp``), sample each point's grey value where the point
-            appears in the colour image after the attitude stream's rotation between the two
-            instants (``sample_grey``). The geometry, and the attitude that rotates it, are
-            always taken at the depth instant.
-        undistort: where the sequence camera has lens distortion (``PinholeCamera.distortion``,
-            e.g. the TUM freiburg1/2 presets), back-project each pixel along its undistorted ray
-            and sample the colour image through the forward distortion; off treats the images
-            as ideal pinhole images. Cameras without distortion are unaffected.
-        kcc: correlator, keyframe and fusion settings. The paper's values except
-            ``depth_median_center``, on here: with the paper's depth test, any motion along the
-            optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, and
-            on TUM fr1/xyz that broke tracking (ATE 12.9 cm against 1.8 cm with it on); and
-            ``depth_statistic``, "median" here (``depth_translation``).
-        loop: loop closure settings.
-        map_voxel: voxel size of ``map.ply``, metres.
-        monitor_images_every: log the orthographic image of every n-th keyframe and the
-            correlation response of the first frame matched against it (TensorBoard).
-
-    Every numeric field has a declared ``Limit`` (``LIMITS``); NaN is refused everywhere.
-    """
-
-    attitude: str = "auto"
-    gravity: str = "auto"
-    sim_gyro_noise: float = ImuNoise.gyro_noise_density
-    sim_bias_walk: float = ImuNoise.gyro_bias_walk
-    sim_seed: int = 0
-    attitude_max_gap: float = 0.1
-    attitude_time_offset: float = 0.0
-    pixel_stride: int = 1
-    min_valid_points: int = 1000
-    max_jump_m: float = 0.1
-    lost_uses_prior: bool = True
-    grey_at_depth_time: bool = True
-    undistort: bool = True
-    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
-    loop: LoopConfig = field(default_factory=LoopConfig)
-    map_voxel: float = 0.01
-    monitor_images_every: int = 10
-
-    LIMITS: ClassVar[dict[str, Limit]] = {
-        "sim_gyro_noise": NON_NEGATIVE, "sim_bias_walk": NON_NEGATIVE, "sim_seed": Limit(),
-        "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "pixel_stride": AT_LEAST_1,
-        "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True), "map_voxel": POSITIVE,
-        "monitor_images_every": NON_NEGATIVE,
-    }
-
-    def __post_init__(self) -> None:
-        check_limits(self)
-        if self.attitude not in ATTITUDE_CHOICES:
-            raise ConfigError(f"attitude: {self.attitude!r} is not one of {list(ATTITUDE_CHOICES)}")
-        if self.gravity not in GRAVITY_CHOICES:
-            raise ConfigError(f"gravity: {self.gravity!r} is not one of {list(GRAVITY_CHOICES)}")
-
-
-@dataclass(frozen=True)
-class TrackResult:
-    """One batched tracking step against the current keyframes.
-
-    Attributes:
-        t_content: (B, 3) scene-content translation ``(t_xy, t_z)`` in the keyframe attitude
-            frame, metres; the frame's camera sits at ``-t_content`` from the keyframe's.
-        variance: (B, 3) variances of ``t_content``, m^2.
-        psr: (B,) peak-to-sidelobe ratio.
-        matched_fraction: (B,) fraction of the frame's valid orthographic pixels well matched.
-        frame: the frame's orthographic images.
-        index: (B, 2) integer content shift used for depth and fusion.
-        depth_ok: (B,) bool, some pixels were well matched (t_z is meaningful).
-        matched: (B, H, W) bool well-matched set.
-        response: (B, H, W) correlation output.
-    """
-
-    t_content: Tensor
-    variance: Tensor
-    psr: Tensor
-    matched_fraction: Tensor
-    frame: OrthoImages
-    index: Tensor
-    depth_ok: Tensor
-    matched: Tensor
-    response: Tensor
-
-
-def track_step(
-    points: Tensor,
-    grey: Tensor,
-    valid: Tensor,
-    R_kf_frame: Tensor,
-    kf_map: KeyframeMap,
-    kf_filter: KCCFilter,
-    resolution: Tensor,
-    cfg: KCCConfig,
-) -> TrackResult:
-    """Match frames against their keyframes (NI-SLAM Eq. (4)–(21)), batched.
-
-    Args:
-        points: (B, N, 3) camera-frame points, metres.
-        grey: (B, N) grey values in [0, 1].
-        valid: (B, N) bool validity.
-        R_kf_frame: (B, 3, 3) rotation from the frame's camera into the keyframe attitude
-            (``R_wk^T R_wi``).
-        kf_map: the keyframes' fused orthographic maps, (B, H, W) fields.
-        kf_filter: the correlators trained on those maps.
-        resolution: (B,) keyframe resolutions ``r_k``, metres per pixel.
-        cfg: correlator settings.
-
-    Returns:
-        TrackResult.
-    """
-    size = (cfg.ortho_height, cfg.ortho_width)
-    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.dtype), resolution, size)
-    x = kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes)
-    temperature = cfg.temperature if cfg.soft_argmax else None
-    pred = kcc_predict(
-        x, kf_filter, cfg.sigma, resolution, cfg.subpixel, cfg.subpixel_smoothing, cfg.subpixel_iterations,
-        cfg.psr_window, temperature,
-    )
-    dz = depth_translation(fr, kf_map, pred.index, cfg.T_c, cfg.T_d, cfg.depth_median_center, cfg.depth_statistic)
-    n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
-    t = torch.cat([pred.t_xy, dz.t_z[:, None]], dim=-1)
-    var = torch.stack([pred.variance, pred.variance, dz.variance], dim=-1)
-    return TrackResult(
-        t_content=t,
-        variance=var,
-        psr=pred.psr,
-        matched_fraction=dz.count.to(points.dtype) / n_valid,
-        frame=fr,
-        index=pred.index,
-        depth_ok=dz.ok,
-        matched=dz.matched,
-        response=pred.response,
-    )
 
 
 @dataclass
@@ -307,80 +88,36 @@ class _Keyframe:
     resolution: Tensor  # (1,)
     map: KeyframeMap  # B = 1
     filter: KCCFilter | None
-    points: Tensor | None  # (1, N, 3) cloud for loop verification (dropped after use)
-    grey: Tensor | None
-    valid: Tensor | None
+    cloud: Cloud | None  # cloud for loop verification (dropped after use)
     colour: Tensor | None = None  # (3, H, W) uint8 orthographic colour image at creation, on the CPU (map.ply)
     colour_valid: Tensor | None = None  # (H, W) bool, the pixels ``colour`` holds
 
 
-@dataclass
-class _Work:
-    """One frame on its way through the phases of ``track_frames`` (tensors are B = 1 rows)."""
+@dataclass(frozen=True)
+class _Placed:
+    """A frame with its pose: what a keyframe is made from, and the last well-tracked frame.
 
-    frame: Frame
-    times: Tensor  # (2,) float64 depth and colour instants
-    R_att: Tensor  # (2, 3, 3) float64 attitude stream at those instants
-    ok: Tensor  # (2,) bool, the stream covers them
-    rgb: Tensor  # (1, 3, H, W) on the device, strided
-    depth: Tensor  # (1, 1, H, W)
-    points: Tensor | None = None  # (1, N, 3) camera-frame points
-    grey: Tensor | None = None  # (1, N)
-    valid: Tensor | None = None  # (1, N) bool
-    n_valid: int = 0  # valid points
-    R_wi: Tensor | None = None  # (3, 3) float64 corrected attitude at the depth instant
-    p_pred: Tensor | None = None  # (3,) constant-velocity prediction, or None
-
-
-def _nearest_axis(v: Tensor) -> Tensor:
-    k = int(v.abs().argmax())
-    out = torch.zeros(3, dtype=torch.float64)
-    out[k] = 1.0 if float(v[k]) > 0 else -1.0
-    return out
-
-
-def _gravity_vector(choice: str, groundtruth) -> Tensor:
-    if choice != "auto":
-        sign = -1.0 if choice.startswith("-") else 1.0
-        axis = {"x": 0, "y": 1, "z": 2}[choice[-1]]
-        g = torch.zeros(3, dtype=torch.float64)
-        g[axis] = 9.81 * sign
-        return g
-    # Camera y points down in the image; its mean world direction is "down" for a camera held
-    # roughly upright. Snap to the nearest world axis: datasets use axis-aligned worlds.
-    down = groundtruth.T_wc[:, :3, 1].mean(0)
-    return 9.81 * _nearest_axis(down)
-
-
-def attitude_stream(sequence: Sequence, cfg: NISlamConfig) -> AttitudeStream:
-    """Choose and build the attitude stream for ``sequence`` (see ``NISlamConfig.attitude``).
-
-    Raises:
-        ConfigError: the chosen source needs data the sequence does not have.
+    Attributes:
+        input: the frame (phase 1).
+        cloud: its cloud.
+        T_wi: (4, 4) float64 pose at the depth instant.
+        variance: (3,) variance of its match's translation, m^2 (None for the first keyframe).
     """
-    choice = cfg.attitude
-    imu_stream = getattr(sequence, "attitude", None)
-    gt = getattr(sequence, "groundtruth_raw", None)
-    if gt is None:
-        gt = sequence.groundtruth
-    if choice == "auto":
-        choice = "imu" if imu_stream is not None else "simulated"
-    if choice == "imu":
-        if imu_stream is None:
-            raise ConfigError(
-                f"attitude=imu: {sequence.name} has no IMU stream (a TUM-layout folder needs an imu.txt; "
-                "TUM RGB-D has no gyroscope); "
-                "use attitude=simulated or attitude=groundtruth"
-            )
-        return imu_stream
-    if gt is None or len(gt) < 2:
-        raise ConfigError(f"attitude={choice}: {sequence.name} has no ground truth to derive the attitude from")
-    if choice == "groundtruth":
-        return groundtruth_attitude(gt)
-    return simulated_attitude(
-        gt, gyro_noise=cfg.sim_gyro_noise, bias_walk=cfg.sim_bias_walk, seed=cfg.sim_seed,
-        gravity_w=_gravity_vector(cfg.gravity, gt),
-    )
+
+    input: FrameInput
+    cloud: Cloud
+    T_wi: Tensor
+    variance: Tensor | None
+
+
+@dataclass(frozen=True)
+class _LoopEdge:
+    """A verified loop candidate: keyframe ``candidate`` sees the new keyframe at ``T_jk``."""
+
+    candidate: int
+    T_jk: Tensor  # (4, 4) float64
+    variance: Tensor  # (3,) m^2
+    psr: float
 
 
 class NISlam:
@@ -392,6 +129,8 @@ class NISlam:
         self.cfg = cfg or NISlamConfig()
         self.device = torch.device(device)
         self.monitor = monitor or Monitor()
+        self.policy = KeyframePolicy.of(self.cfg)
+        self.correlator = correlator_for(self.cfg.kcc).to(self.device)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, sequence: Sequence) -> None:
@@ -400,15 +139,15 @@ class NISlam:
         cam = sequence.camera
         s = cfg.pixel_stride
         cam_s = cam if s == 1 else type(cam)(cam.fx / s, cam.fy / s, cam.cx / s, cam.cy / s, max(1, cam.width // s), max(1, cam.height // s))
-        self.intrinsics = cam_s.as_tensor(torch.float32, self.device)[None]
         # Undistorted rays of the (strided) pixels: those of the full image at the kept pixels.
-        self.rays: Tensor | None = None
-        self.distortion: tuple[float, ...] | None = None
-        if cfg.undistort and cam.has_distortion:
-            self.rays = undistorted_rays(cam, torch.float32, self.device, step=s)
-            self.distortion = cam.distortion
-        # Systems whose cameras agree here share the rays and the lens: one back-projection call.
-        self._lens_key = None if self.rays is None else (cam, s)
+        # Systems whose cameras agree share the rays and the lens: one back-projection call.
+        has_lens = cfg.undistort and cam.has_distortion
+        self.camera = CameraRig(
+            intrinsics=cam_s.as_tensor(torch.float32, self.device)[None],
+            rays=undistorted_rays(cam, torch.float32, self.device, step=s) if has_lens else None,
+            distortion=cam.distortion if has_lens else None,
+            lens_key=(cam, s) if has_lens else None,
+        )
         self.attitude = attitude_stream(sequence, cfg)
         self.R_corr = torch.eye(3, dtype=torch.float64)
         self.keyframes: list[_Keyframe] = []
@@ -431,7 +170,7 @@ class NISlam:
         self.mild = MILDDatabase(MILDConfig(top_k=cfg.loop.top_k, exclude_recent=cfg.loop.min_separation, min_score=cfg.loop.min_score))
         self.orb_cfg = ORBConfig(n_features=cfg.loop.orb_features)
         self.posegraph_ms: list[float] = []
-        self._last: dict[str, Any] | None = None
+        self._well_tracked: _Placed | None = None  # the last well-tracked frame since the current keyframe
         self.motion_prior_frames = 0
         self._history_start = 0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
@@ -454,13 +193,13 @@ class NISlam:
         if error is not None:
             raise error
 
-    # The phases of one frame, in the order ``track_frames`` calls them. Each works on this
-    # sequence alone; the batched stages between them (back-projection, tracking step)
-    # belong to ``track_frames``.
-    def _begin(self, frame: Frame) -> _Work | None:
+    # The phases of one frame, in the order ``step.track_frames`` calls them (see ``step``).
+    def prepare(self, frame: Frame) -> FrameInput | None:
         """Phase 1: the attitude at the depth and colour instants and the images on the device.
 
-        Returns None when the attitude stream has a gap at the frame (counted, not tracked).
+        Returns:
+            The frame's input, or None when the attitude stream has a gap at the frame (counted,
+            not tracked).
         """
         cfg = self.cfg
         self.last_frame_index = frame.index
@@ -475,36 +214,93 @@ class NISlam:
         if cfg.pixel_stride > 1:
             rgb = rgb[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
             depth = depth[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
-        return _Work(frame=frame, times=times, R_att=R_att, ok=ok, rgb=rgb, depth=depth)
+        resample = cfg.grey_at_depth_time and bool(ok[1]) and float(times[0]) != float(times[1])
+        return FrameInput(frame=frame, times=times, R_att=R_att, rgb=rgb, depth=depth, camera=self.camera, resample_grey=resample)
 
-    def _camera_key(self, work: _Work) -> tuple:
-        """Frames with equal keys are back-projected in one call (same rays, lens and image size)."""
-        return (self._lens_key, tuple(work.rgb.shape[1:]), tuple(work.depth.shape[1:]), work.rgb.device)
+    def start_match(self, input: FrameInput, cloud: Cloud) -> MatchRequest | None:
+        """Phase 2, after back-projection: too few points, or the first keyframe; else what to match.
 
-    def _resample_grey(self, work: _Work) -> bool:
-        """Whether the frame's grey values are to be sampled at the depth instant (``sample_grey``)."""
-        return self.cfg.grey_at_depth_time and bool(work.ok[1]) and float(work.times[0]) != float(work.times[1])
-
-    def _start_frame(self, work: _Work, n_valid: int) -> bool:
-        """Phase 2, after back-projection: too few points, or the first keyframe. True: track the frame."""
-        cfg = self.cfg
-        if n_valid < cfg.min_valid_points:
+        Returns:
+            The match against the current keyframe, or None when the frame is not matched.
+        """
+        if cloud.n_valid < self.cfg.min_valid_points:
             self.untracked["too_few_points"] += 1
-            return False
-        work.R_wi = self.R_corr @ work.R_att[0]
+            return None
+        R_wi = self.R_corr @ input.R_att[0]
         if not self.keyframes:
-            T_wi = se3_from_Rt(work.R_wi, torch.zeros(3, dtype=torch.float64))
-            self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb)
-            self._record(work.frame, T_wi)
+            first = _Placed(input, cloud, se3_from_Rt(R_wi, torch.zeros(3, dtype=torch.float64)), None)
+            self._new_keyframe(first)
+            self._record(input.frame, first.T_wi)
             self.psr.append(math.inf)
-            self._last = None
-            return False
-        return True
+            self._well_tracked = None
+            return None
+        return self._request(input, cloud, R_wi, retried=False)
 
-    def _track_inputs(self, work: _Work) -> tuple[Tensor, KeyframeMap, KCCFilter, Tensor]:
-        """The current keyframe's side of ``track_step``: (1, 3, 3) rotation, map, filter, (1,) resolution."""
+    def apply_match(self, request: MatchRequest, res: TrackResult, kf_filter: KCCFilter) -> MatchRequest | None:
+        """Phase 3: the match against the keyframe, judged by the keyframe policy.
+
+        Args:
+            request: the match asked for (``start_match`` or a retry).
+            res: its result (B = 1).
+            kf_filter: the keyframe's filter as the scheduler holds it (a row of its batch).
+
+        Returns:
+            The retry (against a keyframe made from the last well-tracked frame) when the match
+            is lost and a retry is possible; else None: the frame is concluded.
+        """
+        self.keyframes[-1].filter = kf_filter
+        T_wi = self._pose(res, request.R_wi)
+        can_retry = not request.retried and self._well_tracked is not None
+        psr = float(res.psr[0])
+        verdict = self.policy.decide(psr, bool(res.depth_ok[0]), T_wi[:3, 3], request.p_pred, can_retry)
+        if verdict.action is Action.RETRY:
+            # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
+            # so the last well-tracked frame becomes the keyframe and this frame is matched again.
+            self._new_keyframe(self._well_tracked, previous=self.keyframes[-1])
+            self._rebase_last_frame()
+            # A loop closed at that keyframe may have corrected the attitude: apply it.
+            return self._request(request.input, request.cloud, self.R_corr @ request.input.R_att[0], retried=True)
+        self.psr.append(psr)
+        step = request.input.frame.index
+        self.monitor.scalar("tracking/psr", psr, step)
+        if self._response_keyframe == len(self.keyframes) - 1:
+            # The correlation response of the first frame matched against an imaged keyframe,
+            # zero shift at the centre.
+            g = torch.fft.fftshift(res.response[0].detach().float(), dim=(-2, -1))
+            self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], step)
+            self._response_keyframe = None
         kf = self.keyframes[-1]
-        return (kf.T_wk[:3, :3].T @ work.R_wi)[None], kf.map, self._ensure_filter(kf), kf.resolution
+        if verdict.action is Action.NEW_KEYFRAME:
+            if verdict.use_prior:
+                # The frame's correlation estimate is not to be trusted: its position is the
+                # constant-velocity prediction.
+                T_wi = se3_from_Rt(request.R_wi, request.p_pred)
+                self.motion_prior_frames += 1
+            # Nothing better to match against: the frame starts a keyframe of its own.
+            self._new_keyframe(_Placed(request.input, request.cloud, T_wi, res.variance[0]), previous=kf)
+            self._well_tracked = None
+        else:
+            if verdict.fuse:
+                # The filter stays the one trained when the keyframe was created: the paper
+                # trains only on new keyframes, and retraining per fused frame would double the
+                # frame cost. Fusion runs per sequence: on B = 1 its integer shifts are slice
+                # copies, cheaper per frame than the batched gather.
+                t0 = self._tic()
+                kf.map = fuse_keyframe(kf.map, res.frame, res.index, res.t_content[:, 2], res.matched, res.psr, self.policy.T_M)
+                self.fused += 1
+                self._toc("fusion", t0)
+            self._well_tracked = _Placed(request.input, request.cloud, T_wi, res.variance[0])
+        self._record(request.input.frame, T_wi, prior=verdict.use_prior)
+        return None
+
+    def _request(self, input: FrameInput, cloud: Cloud, R_wi: Tensor, retried: bool) -> MatchRequest:
+        """The match of a frame against the current keyframe, with its predicted position."""
+        kf = self.keyframes[-1]
+        return MatchRequest(
+            input=input, cloud=cloud, R_wi=R_wi, p_pred=self._predicted_position(input.frame.timestamp),
+            R_kf_frame=(kf.T_wk[:3, :3].T @ R_wi)[None], kf_map=kf.map, kf_filter=self._ensure_filter(kf),
+            resolution=kf.resolution, correlator=self.correlator, retried=retried,
+        )
 
     def _pose(self, res: TrackResult, R_wi: Tensor) -> Tensor:
         """(4, 4) pose of a frame matched against the current keyframe."""
@@ -513,75 +309,6 @@ class NISlam:
         # The scene content moved by t, so the camera sits at -t in the keyframe attitude frame.
         p_k = -res.t_content[0].to(torch.float64)
         return se3_from_Rt(R_wi, kf.T_wk[:3, 3] + R_wk @ p_k)
-
-    def _tracked(self, work: _Work, res: TrackResult) -> bool:
-        """Phase 3: the match against the keyframe. True: match again against a new keyframe."""
-        T_wi = self._pose(res, work.R_wi)
-        work.p_pred = self._predicted_position(work.frame.timestamp)
-        if self._lost(res, T_wi, work.p_pred) and self._last is not None:
-            # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
-            # so the last well-tracked frame becomes the keyframe and this frame is matched again.
-            last = self._last
-            self._new_keyframe(last["frame"], last["T_wi"], last["R_att"], last["points"], last["grey"], last["valid"],
-                               last["rgb"], previous=self.keyframes[-1], variance=last["variance"])
-            self._rebase_last_frame()
-            # A loop closed at that keyframe may have corrected the attitude: apply it.
-            work.R_wi = self.R_corr @ work.R_att[0]
-            work.p_pred = self._predicted_position(work.frame.timestamp)  # None if that loop reset the history
-            return True
-        self._conclude(work, res, T_wi)
-        return False
-
-    def _retracked(self, work: _Work, res: TrackResult) -> None:
-        """Phase 3b: the match against the keyframe made from the last well-tracked frame."""
-        self._conclude(work, res, self._pose(res, work.R_wi))
-
-    def _conclude(self, work: _Work, res: TrackResult, T_wi: Tensor) -> None:
-        """Phase 4: keyframe decision, fusion and recording."""
-        cfg = self.cfg
-        kf = self.keyframes[-1]
-        psr = float(res.psr[0])
-        self.psr.append(psr)
-        step = work.frame.index
-        self.monitor.scalar("tracking/psr", psr, step)
-        if self._response_keyframe == len(self.keyframes) - 1:
-            # The correlation response of the first frame matched against an imaged keyframe,
-            # zero shift at the centre.
-            g = torch.fft.fftshift(res.response[0].detach().float(), dim=(-2, -1))
-            self.monitor.image("keyframe/response", ((g - g.min()) / (g.max() - g.min()).clamp_min(1e-12))[None], step)
-            self._response_keyframe = None
-        on_prior = False
-        if self._lost(res, T_wi, work.p_pred):
-            if self._jump(T_wi, work.p_pred) or (cfg.lost_uses_prior and work.p_pred is not None):
-                # The frame matches neither its keyframe nor the fresh one made from the last
-                # well-tracked frame (or gives an implausible jump): its correlation estimate is
-                # not to be trusted, so its position is the constant-velocity prediction.
-                T_wi = se3_from_Rt(work.R_wi, work.p_pred)
-                self.motion_prior_frames += 1
-                on_prior = True
-            # Nothing better to match against: the frame starts a keyframe of its own.
-            self._new_keyframe(work.frame, T_wi, work.R_att[0], work.points, work.grey, work.valid, work.rgb,
-                               previous=kf, variance=res.variance[0])
-            self._last = None
-        else:
-            if psr > cfg.kcc.T_M:
-                # The filter stays the one trained when the keyframe was created: the paper
-                # trains only on new keyframes, and retraining per fused frame would double the
-                # frame cost. Fusion runs per sequence: on B = 1 its integer shifts are slice
-                # copies, several times cheaper per frame than the batched gather.
-                t0 = self._tic()
-                kf.map = fuse_keyframe(kf.map, res.frame, res.index, res.t_content[:, 2], res.matched, res.psr, cfg.kcc.T_M)
-                self.fused += 1
-                self._toc("fusion", t0)
-            self._last = {"frame": work.frame, "T_wi": T_wi, "R_att": work.R_att[0], "points": work.points,
-                          "grey": work.grey, "valid": work.valid, "rgb": work.rgb, "variance": res.variance[0]}
-        self._record(work.frame, T_wi, prior=on_prior)
-
-    def _jump(self, T_wi: Tensor, p_pred: Tensor | None) -> bool:
-        return p_pred is not None and float((T_wi[:3, 3] - p_pred).norm()) > self.cfg.max_jump_m
-
-    def _lost(self, res: TrackResult, T_wi: Tensor, p_pred: Tensor | None) -> bool:
-        return float(res.psr[0]) < self.cfg.kcc.T_K or not bool(res.depth_ok[0]) or self._jump(T_wi, p_pred)
 
     def _predicted_position(self, t: float) -> Tensor | None:
         """Constant-velocity prediction from the last two recorded frames (None before two).
@@ -602,7 +329,7 @@ class NISlam:
         """The newest recorded frame became a keyframe: express it relative to itself."""
         self.frame_kf[-1] = len(self.keyframes) - 1
         self.frame_T_kf[-1] = torch.eye(4, dtype=torch.float64)
-        self._last = None
+        self._well_tracked = None
 
     def _record(self, frame: Frame, T_wi: Tensor, prior: bool = False) -> None:
         kf = self.keyframes[-1]
@@ -615,19 +342,20 @@ class NISlam:
 
     def _ensure_filter(self, kf: _Keyframe) -> KCCFilter:
         if kf.filter is None:
-            k = self.cfg.kcc
-            z = kcc_features(kf.map.grey, kf.map.depth, kf.map.valid, k.channel_norm, k.fill_holes)
-            kf.filter = kcc_train(z, k.sigma, k.lam)
+            kf.filter = keyframe_filter(kf.map, self.correlator)
         return kf.filter
 
-    def _new_keyframe(self, frame, T_wi, R_att, points, grey, valid, rgb, previous=None, variance=None) -> None:
+    def _new_keyframe(self, src: _Placed, previous: _Keyframe | None = None) -> None:
+        """Make ``src`` the current keyframe: its map, filter, odometry edge and loop closure."""
         cfg = self.cfg
         t0 = self._tic()
         k = cfg.kcc
+        frame, T_wi, rgb = src.input.frame, src.T_wi, src.input.rgb
+        points, grey, valid = src.cloud.points, src.cloud.grey, src.cloud.valid
         size = (k.ortho_height, k.ortho_width)
         r = choose_resolution(points, valid, size, k.coverage, k.sample_step)
         ortho = orthographic_project(points, grey, valid, None, r, size)
-        kf = _Keyframe(frame.index, frame.timestamp, T_wi, R_att, r, keyframe_map(ortho), None, points, grey, valid)
+        kf = _Keyframe(frame.index, frame.timestamp, T_wi, src.input.R_att[0], r, keyframe_map(ortho), None, src.cloud)
         # The keyframe's colour in the same orthographic pixels (same points, same z-buffer
         # winners), for the colours of map.ply; the tracking itself works on grey.
         n = points.shape[1]
@@ -644,7 +372,7 @@ class NISlam:
         self._ensure_filter(kf)
         kid = len(self.keyframes) - 1
         if previous is not None:
-            self._add_edge(kid - 1, kid, se3_inverse(previous.T_wk) @ T_wi, variance, loop=False)
+            self._add_edge(kid - 1, kid, se3_inverse(previous.T_wk) @ T_wi, src.variance, loop=False)
         t0 = self._toc("keyframe", t0)
         self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
         if cfg.monitor_images_every and kid % cfg.monitor_images_every == 0:
@@ -653,7 +381,7 @@ class NISlam:
         if cfg.loop.enabled:
             self._loop_closure(kid, rgb)
             self._toc("loop", t0)
-        kf.points = kf.grey = kf.valid = None
+        kf.cloud = None
 
     def _add_edge(self, i: int, j: int, T_ij: Tensor, variance: Tensor, loop: bool) -> None:
         lc = self.cfg.loop
@@ -675,35 +403,35 @@ class NISlam:
             return
         ids, _ = self.mild.query(desc) if len(self.mild) else (torch.zeros(0, dtype=torch.int64), torch.zeros(0))
         self.mild.add(kid, desc)
-        best = None
+        best: _LoopEdge | None = None
         for cand in ids.tolist():
             if cand > kid - cfg.loop.min_separation:
                 continue
             self.loops["candidates"] += 1
             edge = self._verify(cand, kf)
-            if edge is not None and (best is None or edge[2] > best[2]):
-                best = (cand, edge[0], edge[2], edge[1])
+            if edge is not None and (best is None or edge.psr > best.psr):
+                best = edge
         if best is None:
             return
         self.loops["verified"] += 1
-        cand, T_jk, _, variance = best
-        self._try_loop(cand, kid, T_jk, variance)
+        self._try_loop(best.candidate, kid, best.T_jk, best.variance)
 
-    def _verify(self, cand: int, kf: _Keyframe):
+    def _verify(self, cand: int, kf: _Keyframe) -> _LoopEdge | None:
         """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map."""
-        cfg = self.cfg
+        lc = self.cfg.loop
         old = self.keyframes[cand]
         R_jk = old.T_wk[:3, :3].T @ kf.T_wk[:3, :3]
-        if math.degrees(float(so3_log(R_jk).norm())) > cfg.loop.max_rotation_deg:
+        if math.degrees(float(so3_log(R_jk).norm())) > lc.max_rotation_deg:
             return None
         filt = self._ensure_filter(old)
-        res = track_step(kf.points, kf.grey, kf.valid, R_jk[None], old.map, filt, old.resolution, cfg.kcc)
+        c = kf.cloud
+        res = track_step(c.points, c.grey, c.valid, R_jk[None], old.map, filt, old.resolution, self.correlator)
         old.filter = None  # keep memory flat: old keyframes' filters are rebuilt on demand
         psr = float(res.psr[0])
-        if psr < cfg.loop.min_psr or not bool(res.depth_ok[0]) or float(res.matched_fraction[0]) < cfg.loop.min_matched:
+        if psr < lc.min_psr or not bool(res.depth_ok[0]) or float(res.matched_fraction[0]) < lc.min_matched:
             return None
         p = -res.t_content[0].to(torch.float64)
-        return se3_from_Rt(R_jk, p), res.variance[0], psr
+        return _LoopEdge(cand, se3_from_Rt(R_jk, p), res.variance[0], psr)
 
     def _edges(self):
         return (
@@ -881,266 +609,25 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
     return colour, has
 
 
-# ---------------------------------------------------------------------- many sequences in lockstep
-
-
-def track_frames(systems: list[NISlam], frames: list[Frame], max_batch: int | None = None) -> StepReport:
-    """Advance NI-SLAM systems (one per sequence, each started) by one frame each, batching the heavy stages.
-
-    Every system keeps its own keyframes, attitude stream, loop closure and pose graph; only the
-    per-frame tensor work is shared. In order:
-
-    1. each system samples its attitude stream (``NISlam._begin``);
-    2. one ``rgbd_to_points`` (and ``sample_grey`` for the frames that need it) per group of
-       systems with the same camera and image size;
-    3. each system handles too few points and its first keyframe;
-    4. one ``track_step`` for all systems still tracking, against their own current keyframes
-       (maps, filters, resolutions and rotations stacked along B; the orthographic size is
-       fixed by the config, so the shapes agree);
-    5. each system applies its match (``NISlam._tracked``: keyframe decision, fusion, loop
-       closure, recording); those that lost their keyframe make one from their last
-       well-tracked frame, and
-    6. one more ``track_step`` matches those again; they conclude (``NISlam._retracked``).
-
-    The current keyframes stay per system as row views of the batch they were last stacked in,
-    so while no system of a group changes its keyframe map they are stacked without a copy. The
-    result of each system equals what ``NISlam.track`` alone gives, to floating-point round-off of
-    the batched kernels (``NISlam.track`` is this function with one system).
-
-    Args:
-        systems: started ``NISlam`` instances.
-        frames: the next frame of each system's sequence.
-        max_batch: the most systems in one batched call; systems are split in consecutive
-            groups of this size (None: all together).
-
-    Returns:
-        StepReport. A phase that raises marks only its own system; a batched call that raises is
-        repeated one system at a time so the failure lands on the system that caused it.
-
-    Raises:
-        ShapeError: ``frames`` does not hold one frame per system.
-        ConfigError: ``max_batch`` is not a positive integer.
-    """
-    if len(frames) != len(systems):
-        raise ShapeError(f"frames: expected one frame per system ({len(systems)}), got {len(frames)}")
-    if max_batch is not None and not (isinstance(max_batch, int) and max_batch >= 1):
-        raise ConfigError(f"max_batch: expected a positive integer or None, got {max_batch!r}")
-    n = len(systems)
-    step = _Step(systems)
-    size = max_batch or max(n, 1)
-    for lo in range(0, n, size):
-        step.advance(list(range(lo, min(lo + size, n))), frames)
-    return StepReport(errors=step.errors, compute_s=step.seconds)
-
-
-class _Step:
-    """Bookkeeping of one ``track_frames`` call: per-system works, errors and seconds."""
-
-    def __init__(self, systems: list[NISlam]) -> None:
-        self.systems = systems
-        self.errors: list[Exception | None] = [None] * len(systems)
-        self.seconds = [0.0] * len(systems)
-        self.works: list[_Work | None] = [None] * len(systems)
-        self.results: dict[int, TrackResult] = {}  # matches waiting for their system's next phase
-
-    def own(self, i: int, stage: str | None, fn, *args):
-        """Run one system's phase: timed, charged to it, and its failure caught. None after a failure."""
-        t0 = time.perf_counter()
-        try:
-            return fn(*args)
-        except Exception as exc:  # noqa: BLE001 - one failing sequence must not stop the others
-            self.errors[i] = exc
-            self.works[i] = None
-            return None
-        finally:
-            dt = time.perf_counter() - t0
-            self.seconds[i] += dt
-            if stage is not None:
-                ms = self.systems[i].stage_ms
-                ms[stage] = ms.get(stage, 0.0) + 1000.0 * dt
-
-    def shared(self, items: list[int], stage: str, fn, *args):
-        """Run a batched call for ``items``: its time is split evenly among them. Raises as ``fn``."""
-        t0 = time.perf_counter()
-        try:
-            return fn(*args)
-        finally:
-            share = (time.perf_counter() - t0) / len(items)
-            for i in items:
-                self.seconds[i] += share
-                ms = self.systems[i].stage_ms
-                ms[stage] = ms.get(stage, 0.0) + 1000.0 * share
-
-    def batched(self, items: list[int], stage: str, fn) -> None:
-        """``fn(items)`` once; if it raises for several items, once per item so the failure is attributed."""
-        if not items:
-            return
-        try:
-            self.shared(items, stage, fn, items)
-        except Exception as exc:  # noqa: BLE001 - see ``own``
-            if len(items) == 1:
-                self.errors[items[0]] = exc
-                self.works[items[0]] = None
-                return
-            for i in items:
-                self.batched([i], stage, fn)
-
-    def advance(self, chunk: list[int], frames: list[Frame]) -> None:
-        """Take the systems ``chunk`` (indices) through every phase of one frame (see ``track_frames``)."""
-        systems, works = self.systems, self.works
-        for i in chunk:
-            works[i] = self.own(i, "backproject", systems[i]._begin, frames[i])
-        for group in _groups([i for i in chunk if works[i] is not None], lambda i: systems[i]._camera_key(works[i])):
-            self.batched(group, "backproject", self._backproject)
-        tracking = [i for i in chunk if works[i] is not None and self.own(i, None, systems[i]._start_frame, works[i], works[i].n_valid)]
-        again = []
-        for group in _groups(tracking, self._track_key):
-            self.batched(group, "kcc", self._track)
-            again += [i for i in group if i in self.results and self.own(i, None, systems[i]._tracked, works[i], self.results.pop(i))]
-        for group in _groups(again, self._track_key):
-            self.batched(group, "kcc", self._track)
-            for i in group:
-                if i in self.results:
-                    self.own(i, None, systems[i]._retracked, works[i], self.results.pop(i))
-
-    def _track_key(self, i: int) -> tuple:
-        """Systems with equal keys share one ``track_step`` (same settings, cloud size and device)."""
-        points = self.works[i].points
-        return (self.systems[i].cfg.kcc, tuple(points.shape[1:]), points.device)
-
-    def _backproject(self, items: list[int]) -> None:
-        systems, works = self.systems, [self.works[i] for i in items]
-        first = systems[items[0]]
-        rgb = _stack_rows([w.rgb for w in works])
-        depth = _stack_rows([w.depth for w in works])
-        intrinsics = _stack_rows([systems[i].intrinsics for i in items])
-        points, grey, valid = rgbd_to_points(rgb, depth, intrinsics, rays=first.rays)
-        need = [k for k, i in enumerate(items) if systems[i]._resample_grey(works[k])]
-        if need:
-            # depth camera -> colour camera, from the attitude stream at the two instants
-            R_cd = torch.stack([works[k].R_att[1].T @ works[k].R_att[0] for k in need]).to(points.dtype)
-            if len(need) == len(items):
-                grey, valid = _grey_at_depth_time(rgb, points, valid, R_cd, intrinsics, grey, first)
-            else:
-                idx = torch.tensor(need, device=points.device)
-                g, v = _grey_at_depth_time(rgb[idx], points[idx], valid[idx], R_cd, intrinsics[idx], grey[idx], first)
-                grey, valid = grey.index_copy(0, idx, g), valid.index_copy(0, idx, v)
-        counts = valid.sum(dim=1).tolist()
-        for k, w in enumerate(works):
-            w.points, w.grey, w.valid = points[k : k + 1], grey[k : k + 1], valid[k : k + 1]
-            w.n_valid = int(counts[k])
-
-    def _track(self, items: list[int]) -> None:
-        systems, works = self.systems, [self.works[i] for i in items]
-        inputs = [systems[i]._track_inputs(w) for i, w in zip(items, works)]
-        kf_map = _stack_dataclass([m for _, m, _, _ in inputs])
-        kf_filter = _stack_dataclass([f for _, _, f, _ in inputs])
-        res = track_step(
-            _stack_rows([w.points for w in works]),
-            _stack_rows([w.grey for w in works]),
-            _stack_rows([w.valid for w in works]),
-            torch.cat([R for R, _, _, _ in inputs]),
-            kf_map,
-            kf_filter,
-            torch.cat([r for _, _, _, r in inputs]),
-            systems[items[0]].cfg.kcc,
-        )
-        if len(items) == 1:
-            self.results[items[0]] = res
-            return
-        for k, i in enumerate(items):
-            # Keep the filters as rows of this batch: the next step stacks them without a copy.
-            # (The maps are not: most frames fuse into theirs, which replaces it anyway.)
-            systems[i].keyframes[-1].filter = _row(kf_filter, k)
-            self.results[i] = _row(res, k)
-
-
-def _grey_at_depth_time(rgb, points, valid, R_cd, intrinsics, grey, system: NISlam) -> tuple[Tensor, Tensor]:
-    """Grey of each depth pixel seen at the colour instant: a rotation-only warp per image
-    (``sample_grey_rotated``, ~3x cheaper than projecting every point; per point only for an
-    item whose rotation turns part of the image behind the camera)."""
-    return sample_grey_rotated(
-        rgb, valid, R_cd, intrinsics, rays=system.rays, grey_image=grey, distortion=system.distortion, points=points
-    )
-
-
-def _groups(items: list[int], key) -> list[list[int]]:
-    """Split ``items`` (in order) by ``key``: the systems that can share one batched call."""
-    out: dict[Any, list[int]] = {}
-    for i in items:
-        out.setdefault(key(i), []).append(i)
-    return list(out.values())
-
-
-def _dense(t: Tensor) -> bool:
-    """Whether ``t`` covers one gap-free block of its storage in some dimension order.
-
-    True for contiguous tensors and for permuted views of them, such as the (1, N, 3) rows of
-    ``rgbd_to_points``' clouds, which are stored as (1, 3, N) coordinate planes.
-    """
-    expected = 1
-    for stride, size in sorted((st, sz) for st, sz in zip(t.stride(), t.shape) if sz > 1):
-        if stride != expected:
-            return False
-        expected *= size
-    return True
-
-
-def _stack_rows(rows: list[Tensor]) -> Tensor:
-    """Concatenate (1, ...) tensors along dim 0, without a copy where they are consecutive rows of one tensor.
-
-    Rows of one batch keep their memory layout (e.g. the coordinate planes of a point cloud) in
-    the stacked view; a copy (``torch.cat``) is made only where they are not consecutive.
-    """
-    first = rows[0]
-    if len(rows) == 1:
-        return first
-    step = first.numel()
-    storage = first.untyped_storage().data_ptr()
-    if _dense(first) and all(
-        r.shape == first.shape and r.stride() == first.stride() and r.dtype == first.dtype and r.device == first.device
-        and r.untyped_storage().data_ptr() == storage and r.storage_offset() == first.storage_offset() + k * step
-        for k, r in enumerate(rows)
-    ):
-        return first.as_strided((len(rows), *first.shape[1:]), (step, *first.stride()[1:]))
-    return torch.cat(rows)
-
-
-def _stack_dataclass(items: list):
-    """Stack frozen dataclasses of (1, ...) tensors (KeyframeMap, KCCFilter, OrthoImages) along B."""
-    if len(items) == 1:
-        return items[0]
-    values = {}
-    for f in dataclasses.fields(items[0]):
-        v = getattr(items[0], f.name)
-        if isinstance(v, Tensor):
-            values[f.name] = _stack_rows([getattr(x, f.name) for x in items])
-        elif dataclasses.is_dataclass(v):
-            values[f.name] = _stack_dataclass([getattr(x, f.name) for x in items])
-        else:
-            values[f.name] = v
-    return type(items[0])(**values)
-
-
-def _row(batch, k: int):
-    """Row ``k`` of a dataclass of (B, ...) tensors, as (1, ...) views."""
-    values = {}
-    for f in dataclasses.fields(batch):
-        v = getattr(batch, f.name)
-        if isinstance(v, Tensor):
-            values[f.name] = v[k : k + 1]
-        elif dataclasses.is_dataclass(v):
-            values[f.name] = _row(v, k)
-        else:
-            values[f.name] = v
-    return type(batch)(**values)
-
-
 def _memory(cfg: NISlamConfig, camera, batch: int) -> dict[str, tuple[int, str]]:
     """NI-SLAM's orthographic images and their spectra, per sequence (``systems.memory``)."""
     k = cfg.kcc
     return {"orthographic images": (NISLAM_BYTES_PER_ORTHO_PIXEL * k.ortho_height * k.ortho_width * batch,
                                     f"kcc.ortho_height x kcc.ortho_width = {k.ortho_height} x {k.ortho_width}")}
+
+
+# Orthographic pixels per batched call on the CPU: ``max_batch`` defaults to this over the
+# orthographic image size (at least 1). On the CPU a batched call saves per-operation overhead
+# but its images leave the caches as B grows (``scripts/bench_batch.py`` measures the trade-off);
+# on other devices the whole group is one batch.
+CPU_BATCH_PIXELS = 2**18
+
+
+def _max_batch(cfg: NISlamConfig, device: str, n: int) -> int:
+    """Sequences per batched call: ``CPU_BATCH_PIXELS`` worth of orthographic images on the CPU, else all ``n``."""
+    if str(device).startswith("cpu"):
+        return max(1, CPU_BATCH_PIXELS // (cfg.kcc.ortho_height * cfg.kcc.ortho_width))
+    return max(n, 1)
 
 
 SPEC = SystemSpec(
@@ -1149,4 +636,6 @@ SPEC = SystemSpec(
     config_cls=NISlamConfig,
     build=NISlam,
     memory=_memory,
+    # Every sequence keeps its keyframe images at once.
+    lockstep=LockstepSpec(step=track_frames, max_batch=_max_batch, holds_all=True),
 )

@@ -1,0 +1,130 @@
+"""The KCC tracking step of NI-SLAM: frames matched against their keyframes, batched and pure.
+
+Two recipes live here and nowhere else:
+
+- the keyframe recipe (``keyframe_filter``): a keyframe's fused orthographic map becomes KCC
+  channels (``kcc_features``) and a trained filter (``kcc_train``);
+- the tracking step (``track_step``): a frame's cloud is projected in the keyframe's attitude at
+  the keyframe's resolution, matched against the filter (``kcc_predict``) and its depth shift
+  taken from the well-matched pixels (``depth_translation``), NI-SLAM Eq. (4)-(21).
+
+σ, λ and the soft arg-max temperature reach the kernel through one ``KernelCorrelator``; both
+functions accept a ``KCCConfig`` instead, which builds that module from it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .correlator import KCCConfig, KCCFilter, KernelCorrelator, kcc_features
+from .fusion import KeyframeMap, depth_translation
+from .ortho import OrthoImages, orthographic_project
+
+__all__ = ["TrackResult", "correlator_for", "keyframe_filter", "track_step"]
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """One batched tracking step against the current keyframes.
+
+    Attributes:
+        t_content: (B, 3) scene-content translation ``(t_xy, t_z)`` in the keyframe attitude
+            frame, metres; the frame's camera sits at ``-t_content`` from the keyframe's.
+        variance: (B, 3) variances of ``t_content``, m^2.
+        psr: (B,) peak-to-sidelobe ratio.
+        matched_fraction: (B,) fraction of the frame's valid orthographic pixels well matched.
+        frame: the frame's orthographic images.
+        index: (B, 2) integer content shift used for depth and fusion.
+        depth_ok: (B,) bool, some pixels were well matched (t_z is meaningful).
+        matched: (B, H, W) bool well-matched set.
+        response: (B, H, W) correlation output.
+    """
+
+    t_content: Tensor
+    variance: Tensor
+    psr: Tensor
+    matched_fraction: Tensor
+    frame: OrthoImages
+    index: Tensor
+    depth_ok: Tensor
+    matched: Tensor
+    response: Tensor
+
+
+def correlator_for(cfg: KCCConfig | KernelCorrelator) -> KernelCorrelator:
+    """The correlator of ``cfg``: itself if it is one, else a fixed (non-learnable) one built from it.
+
+    Its values are held in float64 so that they reach float32 and float64 inputs rounded once,
+    as a plain float would.
+    """
+    if isinstance(cfg, KernelCorrelator):
+        return cfg
+    return KernelCorrelator(cfg, dtype=torch.float64)
+
+
+def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | KernelCorrelator) -> KCCFilter:
+    """Train the correlator on keyframes: their channels (``kcc_features``), then ``kcc_train`` (Eq. (9)-(11)).
+
+    Args:
+        kf_map: the keyframes' (fused) orthographic maps, (B, H, W) ``grey``, ``depth``, ``valid``.
+        correlator: the correlator (or its settings).
+
+    Returns:
+        KCCFilter, B keyframes.
+    """
+    corr = correlator_for(correlator)
+    cfg = corr.cfg
+    z = kcc_features(kf_map.grey, kf_map.depth, kf_map.valid, cfg.channel_norm, cfg.fill_holes)
+    return corr.fit(z)
+
+
+def track_step(
+    points: Tensor,
+    grey: Tensor,
+    valid: Tensor,
+    R_kf_frame: Tensor,
+    kf_map: KeyframeMap,
+    kf_filter: KCCFilter,
+    resolution: Tensor,
+    cfg: KCCConfig | KernelCorrelator,
+) -> TrackResult:
+    """Match frames against their keyframes (NI-SLAM Eq. (4)–(21)), batched.
+
+    Args:
+        points: (B, N, 3) camera-frame points, metres.
+        grey: (B, N) grey values in [0, 1].
+        valid: (B, N) bool validity.
+        R_kf_frame: (B, 3, 3) rotation from the frame's camera into the keyframe attitude
+            (``R_wk^T R_wi``).
+        kf_map: the keyframes' fused orthographic maps, (B, H, W) fields.
+        kf_filter: the correlators trained on those maps (``keyframe_filter``).
+        resolution: (B,) keyframe resolutions ``r_k``, metres per pixel.
+        cfg: the correlator, or its settings.
+
+    Returns:
+        TrackResult.
+    """
+    corr = correlator_for(cfg)
+    k = corr.cfg
+    size = (k.ortho_height, k.ortho_width)
+    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.dtype), resolution, size)
+    x = kcc_features(fr.grey, fr.depth, fr.valid, k.channel_norm, k.fill_holes)
+    pred = corr(x, kf_filter, resolution)
+    dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
+    n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
+    t = torch.cat([pred.t_xy, dz.t_z[:, None]], dim=-1)
+    var = torch.stack([pred.variance, pred.variance, dz.variance], dim=-1)
+    return TrackResult(
+        t_content=t,
+        variance=var,
+        psr=pred.psr,
+        matched_fraction=dz.count.to(points.dtype) / n_valid,
+        frame=fr,
+        index=pred.index,
+        depth_ok=dz.ok,
+        matched=dz.matched,
+        response=pred.response,
+    )

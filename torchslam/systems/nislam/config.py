@@ -1,0 +1,164 @@
+"""NI-SLAM settings: the system's config, its loop-closure section and its options as Enums."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from ...errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, Limit, check_limits, parse_choice
+from ...imu import ImuNoise
+from ...kcc import KCCConfig
+
+__all__ = ["AttitudeSource", "Gravity", "LoopConfig", "NISlamConfig"]
+
+
+class AttitudeSource(str, enum.Enum):
+    """Where NI-SLAM's rotations come from (``NISlamConfig.attitude``)."""
+
+    AUTO = "auto"
+    IMU = "imu"
+    SIMULATED = "simulated"
+    GROUNDTRUTH = "groundtruth"
+
+
+class Gravity(str, enum.Enum):
+    """World direction of gravity for the simulated attitude (``NISlamConfig.gravity``)."""
+
+    AUTO = "auto"
+    X = "x"
+    NEG_X = "-x"
+    Y = "y"
+    NEG_Y = "-y"
+    Z = "z"
+    NEG_Z = "-z"
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure on keyframes (NI-SLAM §9).
+
+    Attributes:
+        enabled: look for loops at every new keyframe.
+        orb_features: ORB features kept per keyframe (the paper: 1000).
+        min_separation: candidates must be at least this many keyframes older.
+        top_k: candidates verified per new keyframe.
+        min_score: smallest place-recognition score of a candidate.
+        min_psr: smallest KCC PSR for a verified loop.
+        min_matched: smallest fraction of well-matched orthographic pixels for a verified loop.
+        max_rotation_deg: largest attitude difference between the two keyframes (the
+            orthographic views of two very different attitudes share little).
+        max_odometry_bend_m: reject the loop when, after optimisation, any odometry edge's
+            translation residual exceeds this (the front-end disagrees: §9.2).
+        rotation_sigma_deg: standard deviation of an edge's rotation (attitude) per edge.
+        min_translation_sigma_m: floor of an edge's translation standard deviation.
+    """
+
+    enabled: bool = True
+    orb_features: int = 1000
+    min_separation: int = 8
+    top_k: int = 5
+    min_score: float = 0.05
+    min_psr: float = 30.0
+    min_matched: float = 0.1
+    max_rotation_deg: float = 30.0
+    max_odometry_bend_m: float = 0.05
+    rotation_sigma_deg: float = 0.5
+    min_translation_sigma_m: float = 0.002
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
+        "min_psr": NON_NEGATIVE, "min_matched": FRACTION, "max_rotation_deg": Limit(ge=0, le=180),
+        "max_odometry_bend_m": POSITIVE, "rotation_sigma_deg": POSITIVE, "min_translation_sigma_m": POSITIVE,
+    }
+
+    def __post_init__(self) -> None:
+        check_limits(self)
+
+
+@dataclass(frozen=True)
+class NISlamConfig:
+    """Settings of NI-SLAM. Defaults are the paper's where it gives them (σ, λ, T_c, T_d, T_K, T_M).
+
+    Attributes:
+        attitude: where rotations come from: "imu" (the sequence's IMU through the AHRS: the
+            synthetic sequence's, or a TUM-layout folder's ``imu.txt``),
+            "simulated" (gyro + accelerometer simulated on ground truth with noise and bias
+            drift, then the same AHRS), "groundtruth" (what the NI-SLAM authors fed on TUM,
+            which has no gyroscope), or "auto" (imu where the sequence has an IMU stream, else
+            simulated).
+        gravity: world direction of gravity for the simulated attitude; "auto" takes the world
+            axis closest to the mean camera-down direction of the ground truth.
+        sim_gyro_noise: simulated gyro white noise density, rad/s/sqrt(Hz).
+        sim_bias_walk: simulated gyro bias random walk, rad/s^2/sqrt(Hz).
+        sim_seed: seed of the simulated IMU noise.
+        attitude_max_gap: a frame whose attitude would be interpolated across a larger gap of
+            the stream is not tracked (counted in ``metrics.json``), seconds.
+        attitude_time_offset: the attitude of an image stamped ``t`` is the stream's sample at
+            ``t + attitude_time_offset``, seconds: the two clocks' offset, which
+            ``torchslam calibrate-time`` estimates from the images and the stream's rotations
+            (``torchslam calibrate-time``). Trajectories keep the image stamps.
+        pixel_stride: use every n-th pixel in x and y of the depth image (1 = all; 2 quarters
+            the projection cost).
+        min_valid_points: frames with fewer valid depth points are not tracked.
+        max_jump_m: a frame whose position departs from the constant-velocity prediction by
+            more than this is treated like a PSR collapse (beyond the paper: a false
+            correlation peak can score just above T_K while the true peak fades); ``inf``
+            turns the test off.
+        lost_uses_prior: a frame that is lost (PSR < T_K or no depth match) even against the
+            fresh keyframe made from the last well-tracked frame takes the constant-velocity
+            prediction as its position instead of its own correlation estimate, and starts the
+            next keyframe there (beyond the paper; off: only implausible jumps do): a lost
+            frame's own estimate would otherwise carry its error into every later keyframe.
+        grey_at_depth_time: where the depth image was taken at another instant than the colour
+            image (``Frame.depth_timestamp``), sample each point's grey value where the point
+            appears in the colour image after the attitude stream's rotation between the two
+            instants (``sample_grey``). The geometry, and the attitude that rotates it, are
+            always taken at the depth instant.
+        undistort: where the sequence camera has lens distortion (``PinholeCamera.distortion``,
+            e.g. the TUM freiburg1/2 presets), back-project each pixel along its undistorted ray
+            and sample the colour image through the forward distortion; off treats the images
+            as ideal pinhole images. Cameras without distortion are unaffected.
+        kcc: correlator, keyframe and fusion settings. The paper's values except
+            ``depth_median_center``, on here: with the paper's depth test, any motion along the
+            optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, which
+            breaks tracking on hand-held sequences; and ``depth_statistic``, "median" here
+            (``depth_translation``). ``kcc.T_K`` and ``kcc.T_M`` are read, with ``max_jump_m``
+            and ``lost_uses_prior``, by the keyframe policy (``policy.KeyframePolicy``).
+        loop: loop closure settings.
+        map_voxel: voxel size of ``map.ply``, metres.
+        monitor_images_every: log the orthographic image of every n-th keyframe and the
+            correlation response of the first frame matched against it (TensorBoard).
+
+    Every numeric field has a declared ``Limit`` (``LIMITS``); NaN is refused everywhere.
+    """
+
+    attitude: AttitudeSource = AttitudeSource.AUTO
+    gravity: Gravity = Gravity.AUTO
+    sim_gyro_noise: float = ImuNoise.gyro_noise_density
+    sim_bias_walk: float = ImuNoise.gyro_bias_walk
+    sim_seed: int = 0
+    attitude_max_gap: float = 0.1
+    attitude_time_offset: float = 0.0
+    pixel_stride: int = 1
+    min_valid_points: int = 1000
+    max_jump_m: float = 0.1
+    lost_uses_prior: bool = True
+    grey_at_depth_time: bool = True
+    undistort: bool = True
+    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    map_voxel: float = 0.01
+    monitor_images_every: int = 10
+
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "sim_gyro_noise": NON_NEGATIVE, "sim_bias_walk": NON_NEGATIVE, "sim_seed": Limit(),
+        "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "pixel_stride": AT_LEAST_1,
+        "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True), "map_voxel": POSITIVE,
+        "monitor_images_every": NON_NEGATIVE,
+    }
+
+    def __post_init__(self) -> None:
+        check_limits(self)
+        object.__setattr__(self, "attitude", parse_choice(AttitudeSource, self.attitude, "attitude"))
+        object.__setattr__(self, "gravity", parse_choice(Gravity, self.gravity, "gravity"))

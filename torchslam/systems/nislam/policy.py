@@ -1,0 +1,100 @@
+"""NI-SLAM's keyframe rule: when a frame is fused, starts a keyframe, is matched again or is placed by prediction.
+
+The rule, NI-SLAM §8 with two additions beyond the paper, reads one frame's match against its
+keyframe (PSR, whether any pixels were well matched, its position) and the constant-velocity
+prediction of its position:
+
+- **lost**: PSR < ``T_K``, or no well-matched depth, or a *jump*: the position departs from the
+  prediction by more than ``max_jump_m`` (a false correlation peak can score just above
+  ``T_K`` while the true peak fades).
+- A lost frame is matched again (``RETRY``) against a keyframe made from the last well-tracked
+  frame, if there is one since the current keyframe was made.
+- A frame still lost (or lost with no such frame) starts a keyframe of its own
+  (``NEW_KEYFRAME``); its position is the prediction where it jumped, or, with
+  ``lost_uses_prior``, wherever a prediction exists.
+- A frame not lost keeps its keyframe (``TRACKED``) and is fused into it when PSR > ``T_M``.
+
+The thresholds are read from ``NISlamConfig`` (``kcc.T_K``, ``kcc.T_M``, ``max_jump_m``,
+``lost_uses_prior``) into ``KeyframePolicy``, the one place that applies them.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from .config import NISlamConfig
+
+__all__ = ["Action", "KeyframePolicy", "Verdict"]
+
+
+class Action(enum.Enum):
+    """What a frame's match leads to."""
+
+    TRACKED = "tracked"  # the frame keeps its keyframe (and may be fused into it)
+    RETRY = "retry"  # the last well-tracked frame becomes the keyframe; the frame is matched again
+    NEW_KEYFRAME = "new_keyframe"  # the frame starts a keyframe of its own
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The policy's decision on one match.
+
+    Attributes:
+        action: see ``Action``.
+        fuse: fuse the frame into its keyframe (only with ``Action.TRACKED``).
+        use_prior: the frame's position is the constant-velocity prediction, not its own
+            correlation estimate (only with ``Action.NEW_KEYFRAME``).
+    """
+
+    action: Action
+    fuse: bool = False
+    use_prior: bool = False
+
+
+@dataclass(frozen=True)
+class KeyframePolicy:
+    """The keyframe / fusion / lost rule (see the module docstring) with its thresholds.
+
+    Attributes:
+        T_K: PSR below which a match is lost (NI-SLAM Eq. (22)).
+        T_M: PSR above which a tracked frame is fused into its keyframe (§8).
+        max_jump_m: largest plausible distance from the predicted position, metres (``inf``: off).
+        lost_uses_prior: a frame lost even against a fresh keyframe takes the prediction as its position.
+    """
+
+    T_K: float
+    T_M: float
+    max_jump_m: float
+    lost_uses_prior: bool
+
+    @classmethod
+    def of(cls, cfg: NISlamConfig) -> KeyframePolicy:
+        """The policy of ``cfg``."""
+        return cls(T_K=cfg.kcc.T_K, T_M=cfg.kcc.T_M, max_jump_m=cfg.max_jump_m, lost_uses_prior=cfg.lost_uses_prior)
+
+    def jumped(self, position: Tensor, predicted: Tensor | None) -> bool:
+        """Whether ``position`` (3,) departs from ``predicted`` (3,) by more than ``max_jump_m``."""
+        return predicted is not None and float((position - predicted).norm()) > self.max_jump_m
+
+    def decide(self, psr: float, depth_ok: bool, position: Tensor, predicted: Tensor | None, can_retry: bool) -> Verdict:
+        """Decide on one match.
+
+        Args:
+            psr: the match's peak-to-sidelobe ratio.
+            depth_ok: some pixels were well matched (``TrackResult.depth_ok``).
+            position: (3,) float64 the frame's position from the match, metres.
+            predicted: (3,) float64 constant-velocity prediction of it, or None before two frames.
+            can_retry: a well-tracked frame since the current keyframe can become the keyframe.
+
+        Returns:
+            Verdict.
+        """
+        jump = self.jumped(position, predicted)
+        if not (psr < self.T_K or not depth_ok or jump):
+            return Verdict(Action.TRACKED, fuse=psr > self.T_M)
+        if can_retry:
+            return Verdict(Action.RETRY)
+        return Verdict(Action.NEW_KEYFRAME, use_prior=jump or (self.lost_uses_prior and predicted is not None))
