@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..cache import FifoCache
 from ..errors import ShapeError, check_float, check_shape
 
 __all__ = [
@@ -165,8 +166,7 @@ def distort_planes(x: Tensor, y: Tensor, distortion: tuple[float, ...]) -> tuple
     return xd, yd
 
 
-_RAYS_CACHE: dict[tuple, Tensor] = {}
-_RAYS_CACHE_MAX = 8
+_RAYS_CACHE: FifoCache[Tensor] = FifoCache(8)
 
 
 def undistorted_rays(
@@ -206,13 +206,7 @@ def undistorted_rays(
         raise ShapeError(f"step: expected a positive integer, got {step!r}")
     if not camera.has_distortion:
         return _pinhole_rays(camera, dtype, device, step)
-    key = (camera, step)
-    xy = _RAYS_CACHE.get(key)
-    if xy is None:
-        xy = _invert_distortion(camera, step)
-        if len(_RAYS_CACHE) >= _RAYS_CACHE_MAX:
-            _RAYS_CACHE.pop(next(iter(_RAYS_CACHE)))
-        _RAYS_CACHE[key] = xy
+    xy = _RAYS_CACHE.get_or_compute((camera, step), lambda: _invert_distortion(camera, step))
     return xy.to(dtype=dtype, device=device, copy=True)
 
 

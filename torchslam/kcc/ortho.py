@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..cache import FifoCache, tensor_key
 from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
 from ..geometry.camera import distort_planes
 from ._select import where
@@ -123,16 +124,23 @@ def rgbd_to_points(
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 
-_RAYS: dict[tuple, tuple[Tensor, Tensor]] = {}
-_RAYS_MAX = 8
+# (intrinsics tensor, (rx, ry)) per (H, W, intrinsics identity): the tensor is kept so its id stays unique.
+_RAYS: FifoCache[tuple[Tensor, tuple[Tensor, Tensor]]] = FifoCache(8)
 
 
 def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
-    """((B, H*W), (B, H*W)) factors ``(u - c_x) / f_x`` and ``(v - c_y) / f_y``, cached per camera."""
-    key = (H, W, intr.dtype, intr.device, tuple(intr.detach().cpu().flatten().tolist()))
-    hit = _RAYS.get(key) if not intr.requires_grad else None
-    if hit is not None:
-        return hit
+    """((B, H*W), (B, H*W)) factors ``(u - c_x) / f_x`` and ``(v - c_y) / f_y``, cached per intrinsics tensor.
+
+    The key is the tensor's identity and version (``cache.tensor_key``), never its values, so a
+    lookup does not wait for the device; a caller that passes the same intrinsics tensor every
+    frame hits, a new tensor with equal values recomputes the same factors.
+    """
+    if intr.requires_grad:
+        return _compute_pixel_rays(intr, H, W)
+    return _RAYS.get_or_compute((H, W, *tensor_key(intr)), lambda: (intr, _compute_pixel_rays(intr, H, W)))[1]
+
+
+def _compute_pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     v, u = torch.meshgrid(
         torch.arange(H, dtype=intr.dtype, device=intr.device),
         torch.arange(W, dtype=intr.dtype, device=intr.device),
@@ -140,12 +148,7 @@ def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     )
     u, v = u.reshape(1, -1), v.reshape(1, -1)
     fx, fy, cx, cy = (intr[:, k : k + 1] for k in range(4))
-    rays = ((u - cx) / fx, (v - cy) / fy)
-    if not intr.requires_grad:
-        if len(_RAYS) >= _RAYS_MAX:
-            _RAYS.pop(next(iter(_RAYS)))
-        _RAYS[key] = rays
-    return rays
+    return ((u - cx) / fx, (v - cy) / fy)
 
 
 def sample_grey(
@@ -468,18 +471,12 @@ def choose_resolution(
     return torch.where(n > 0, r, torch.full_like(r, math.nan))
 
 
-_POINT_IDS: dict[tuple, Tensor] = {}
+_POINT_IDS: FifoCache[Tensor] = FifoCache(8)
 
 
 def _point_ids(n: int, device) -> Tensor:
     """``arange(n)`` as int64, kept per (n, device): the z-buffer keys need it for every frame."""
-    key = (n, torch.device(device))
-    ids = _POINT_IDS.get(key)
-    if ids is None:
-        if len(_POINT_IDS) >= 8:
-            _POINT_IDS.pop(next(iter(_POINT_IDS)))
-        ids = _POINT_IDS[key] = torch.arange(n, device=device)
-    return ids
+    return _POINT_IDS.get_or_compute((n, torch.device(device)), lambda: torch.arange(n, device=device))
 
 
 def orthographic_project(
