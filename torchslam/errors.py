@@ -17,7 +17,7 @@ import torch
 
 __all__ = [
     "TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "FieldError", "InvalidValueError", "Limit",
-    "check_shape", "check_float", "check_limits", "parse_choice",
+    "check_shape", "check_float", "check_increasing", "check_limits", "parse_choice",
 ]
 
 
@@ -99,6 +99,12 @@ def check_float(x: torch.Tensor, name: str) -> None:
     """Raise DTypeError unless ``x`` is float32 or float64."""
     if x.dtype not in (torch.float32, torch.float64):
         raise DTypeError(f"{name}: expected float32 or float64, got {x.dtype}")
+
+
+def check_increasing(t: torch.Tensor, name: str) -> None:
+    """Raise InvalidValueError unless the (N,) timestamps ``t`` are strictly increasing."""
+    if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
+        raise InvalidValueError(f"{name}: must be strictly increasing")
 
 
 def parse_choice(cls: type[E], value: Any, what: str) -> E:

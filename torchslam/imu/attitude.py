@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, InvalidValueError, ShapeError, check_float, check_shape, parse_choice
+from ..errors import ConfigError, ShapeError, check_float, check_increasing, check_shape, parse_choice
 from ..geometry import quat_xyzw_to_rotmat, rotmat_to_quat_xyzw
 from .simulate import (
     GRAVITY_W,
@@ -101,8 +101,7 @@ class AttitudeStream:
         check_shape(self.R_wc, "N 3 3", "R_wc", dims)
         if self.timestamps.dtype != torch.float64 or self.R_wc.dtype != torch.float64:
             raise ShapeError(f"timestamps, R_wc: expected float64, got {self.timestamps.dtype} and {self.R_wc.dtype}")
-        if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
-            raise InvalidValueError("timestamps: must be strictly increasing")
+        check_increasing(self.timestamps, "timestamps")
         # Kept as the plain name (it is written to JSON and YAML outputs); the enum decides what is valid.
         object.__setattr__(self, "source", parse_choice(AttitudeSource, self.source, "source").value)
 

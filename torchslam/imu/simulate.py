@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import NON_NEGATIVE, ConfigError, InvalidValueError, Limit, ShapeError, check_float, check_limits, check_shape
+from ..errors import NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_increasing, check_limits, check_shape
 from ..geometry import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw, so3_exp, so3_log, vex
 
 __all__ = [
@@ -76,8 +76,7 @@ class ImuData:
         for name in ("timestamps", "gyro", "accel"):
             if getattr(self, name).dtype != torch.float64:
                 raise ShapeError(f"{name}: expected float64, got {getattr(self, name).dtype}")
-        if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
-            raise InvalidValueError("timestamps: must be strictly increasing")
+        check_increasing(self.timestamps, "timestamps")
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])
@@ -146,8 +145,7 @@ class Kinematics:
         check_shape(self.accel_w, "M 3", "accel_w", dims)
         if self.timestamps.dtype != torch.float64:
             raise ShapeError(f"timestamps: expected float64, got {self.timestamps.dtype}")
-        if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
-            raise InvalidValueError("timestamps: must be strictly increasing")
+        check_increasing(self.timestamps, "timestamps")
 
 
 @dataclass(frozen=True)
