@@ -18,7 +18,7 @@ from typing import Any, Mapping, TypeVar
 
 import yaml
 
-from .errors import ConfigError, FieldError
+from .errors import ConfigError, FieldError, parse_choice
 
 __all__ = [
     "config_file",
@@ -62,13 +62,7 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
             raise ConfigError(f"{where}{key}: expected a mapping of {tp.__name__} fields, got {value!r}")
         return _build(tp, value, prefix=f"{key}.", where=where)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        if isinstance(value, tp):
-            return value
-        valid = [m.value for m in tp]
-        for m in tp:
-            if value == m.value or value == m.name:
-                return m
-        raise ConfigError(f"{where}{key}: {value!r} is not one of {valid}")
+        return parse_choice(tp, value, f"{where}{key}")
     if tp is bool:
         if isinstance(value, bool):
             return value
@@ -112,8 +106,35 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
     return value
 
 
+def _resolve_aliases(cls, data: Mapping[str, Any], prefix: str, where: str) -> Mapping[str, Any]:
+    """``data`` with the keys a config class renamed (``cls.ALIASES``: old key -> dotted new key) moved.
+
+    A class that nests fields it once held flat (``SyntheticConfig.gyro_noise_density`` ->
+    ``imu_noise.gyro_noise_density``) keeps reading the old keys. Giving a key both ways is an error.
+    """
+    aliases: Mapping[str, str] = getattr(cls, "ALIASES", {})
+    if not any(k in aliases for k in data):
+        return data
+    out: dict[str, Any] = {k: v for k, v in data.items() if k not in aliases}
+    for old, value in data.items():
+        if old not in aliases:
+            continue
+        *sections, leaf = aliases[old].split(".")
+        node = out
+        for part in sections:
+            child = node.get(part)
+            child = dict(config_to_dict(child) if dataclasses.is_dataclass(child) else child or {})
+            node[part] = child
+            node = child
+        if leaf in node:
+            raise ConfigError(f"{where}{prefix}{old}: given twice, also as {prefix}{aliases[old]}")
+        node[leaf] = value
+    return out
+
+
 def _build(cls, data: Mapping[str, Any], prefix: str = "", where: str = ""):
     types_ = _field_types(cls)
+    data = _resolve_aliases(cls, data, prefix, where)
     unknown = sorted(set(data) - set(types_))
     if unknown:
         raise ConfigError(
@@ -125,6 +146,8 @@ def _build(cls, data: Mapping[str, Any], prefix: str = "", where: str = ""):
         tp = types_[name]
         current = getattr(base, name)
         if dataclasses.is_dataclass(tp) and isinstance(value, Mapping):
+            # Renamed keys move before the defaults merge in, so they meet only what was given.
+            value = _resolve_aliases(tp, value, f"{prefix}{name}.", where)
             merged = {**config_to_dict(current), **value} if current is not None else dict(value)
             kwargs[name] = _build(tp, merged, prefix=f"{prefix}{name}.", where=where)
         else:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 import math
 import numbers
@@ -10,13 +11,17 @@ import types
 import typing
 from collections.abc import MutableMapping
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import torch
 
 __all__ = [
-    "TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "FieldError", "Limit",
-    "check_shape", "check_float", "check_limits", "parse_choice",
+    "TorchSlamError", "ShapeError", "DataFormatError", "ConfigError", "DTypeError", "FieldError", "InvalidValueError", "Limit",
+    "check_shape", "check_float", "check_increasing", "check_limits", "parse_choice",
 ]
+
+
+E = TypeVar("E", bound=enum.Enum)
 
 
 class TorchSlamError(Exception):
@@ -29,6 +34,10 @@ class ShapeError(TorchSlamError, ValueError):
 
 class DataFormatError(TorchSlamError, ValueError):
     """A file or folder does not hold what it should; the message names the file and line."""
+
+
+class InvalidValueError(TorchSlamError, ValueError):
+    """A tensor argument has the right shape but invalid values (out of order, out of range)."""
 
 
 class DTypeError(TorchSlamError, TypeError):
@@ -92,19 +101,33 @@ def check_float(x: torch.Tensor, name: str) -> None:
         raise DTypeError(f"{name}: expected float32 or float64, got {x.dtype}")
 
 
-def parse_choice(cls, value, what: str):
-    """Return the member of enum ``cls`` named by ``value`` (a member or its value, any case).
+def check_increasing(t: torch.Tensor, name: str) -> None:
+    """Raise InvalidValueError unless the (N,) timestamps ``t`` are strictly increasing."""
+    if t.numel() > 1 and not bool((t[1:] > t[:-1]).all()):
+        raise InvalidValueError(f"{name}: must be strictly increasing")
+
+
+def parse_choice(cls: type[E], value: Any, what: str) -> E:
+    """Return the member of enum ``cls`` named by ``value``: a member, its value or its name, any case.
+
+    Every option of the library (config fields, function arguments) is parsed here, so a bad
+    value reads the same everywhere: ``what: 'x' is not one of ['a', 'b']``.
 
     Raises:
-        ConfigError: naming ``what``, the bad value and the valid ones.
+        ConfigError: naming ``what``, the bad value and the valid values.
     """
     if isinstance(value, cls):
         return value
-    try:
-        return cls(str(value).lower())
-    except ValueError:
-        valid = ", ".join(m.value for m in cls)
-        raise ConfigError(f"{what}: unknown {value!r}; valid: {valid}") from None
+    if isinstance(value, str):
+        text = value.strip().lower()
+        for member in cls:
+            if text == str(member.value).lower() or text == member.name.lower():
+                return member
+    else:
+        for member in cls:
+            if value == member.value and type(value) is not bool:
+                return member
+    raise ConfigError(f"{what}: {value!r} is not one of {[m.value for m in cls]}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ from torchslam.data.calibration import (
     resolve_calibration,
 )
 from torchslam.data.synthetic import SyntheticConfig, camera_from_config
-from torchslam.errors import ConfigError, DataFormatError, ShapeError
+from torchslam.errors import ConfigError, DataFormatError
 from torchslam.geometry import PinholeCamera
 
 GOOD = "517.3 516.5 318.6 255.3 5000 640 480"
@@ -68,9 +68,9 @@ def test_presets_are_plausible(key):
 
 def test_explicit_camera_and_depth_scale_are_checked(tmp_path):
     (tmp_path / "calibration.txt").write_text(GOOD + "\n")
-    with pytest.raises(ShapeError, match=r"camera: implausible intrinsics: principal point cx = 700"):
+    with pytest.raises(ConfigError, match=r"camera: implausible intrinsics: principal point cx = 700"):
         resolve_calibration(tmp_path, camera=PinholeCamera(500, 500, 700, 240, 640, 480))
-    with pytest.raises(ShapeError, match=r"depth_scale: expected 1 to 100000"):
+    with pytest.raises(ConfigError, match=r"depth_scale: expected 1 to 100000"):
         resolve_calibration(tmp_path, depth_scale=1e30)
     assert resolve_calibration(tmp_path, depth_scale=1000).depth_scale == 1000.0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -18,8 +19,10 @@ from torchslam.data import (
     read_tum_trajectory,
     write_tum_folder,
 )
+from torchslam.config import config_from_dict, config_to_dict, load_config
 from torchslam.data.synthetic import (
     SceneRenderer,
+    SyntheticTrajectory,
     build_scene,
     camera_from_config,
     kinect_depth_noise,
@@ -28,7 +31,7 @@ from torchslam.data.synthetic import (
 )
 from torchslam.errors import ConfigError
 from torchslam.geometry import backproject_depth, project_points, se3_act, se3_inverse, so3_log
-from torchslam.imu import AttitudeStream, attitude_errors, integrate_gyro
+from torchslam.imu import AttitudeStream, ImuNoise, attitude_errors, integrate_gyro
 
 F64 = torch.float64
 
@@ -52,7 +55,7 @@ def _small(**kw) -> SyntheticConfig:
         ("fps", -30.0),
         ("depth_holes", 1.5),
         ("depth_noise_k", -0.001),
-        ("gyro_noise_density", float("nan")),
+        ("imu_noise", 1.7e-4),
         ("imu_rate", 0.0),
         ("fx", -500.0),
         ("max_depth", 20.0),
@@ -63,6 +66,52 @@ def _small(**kw) -> SyntheticConfig:
 def test_bad_config_names_the_key(key, value):
     with pytest.raises(ConfigError, match=f"SyntheticConfig.{key}"):
         SyntheticConfig(**{key: value})
+
+
+def test_bad_imu_noise_names_the_key():
+    with pytest.raises(ConfigError, match="ImuNoise.gyro_noise_density"):
+        SyntheticConfig(imu_noise=ImuNoise(gyro_noise_density=float("nan")))
+
+
+def test_flat_imu_noise_keys_are_read_into_the_nested_imu_noise():
+    flat = load_config(SyntheticConfig, overrides=["gyro_noise_density=1e-3", "accel_bias_init=0.5", "frames=7"])
+    nested = load_config(SyntheticConfig, overrides=["imu_noise.gyro_noise_density=1e-3", "imu_noise.accel_bias_init=0.5", "frames=7"])
+    assert flat == nested
+    assert flat.imu_noise == ImuNoise(gyro_noise_density=1e-3, accel_bias_init=0.5) and flat.frames == 7
+    # The saved form is nested, and reads back.
+    assert config_to_dict(flat)["imu_noise"]["gyro_noise_density"] == 1e-3
+    assert config_from_dict(SyntheticConfig, config_to_dict(flat)) == flat
+    for old in ("gyro_noise_density", "gyro_bias_walk", "accel_noise_density", "accel_bias_walk", "gyro_bias_init", "accel_bias_init"):
+        cfg = config_from_dict(SyntheticConfig, {old: 0.25})
+        assert getattr(cfg.imu_noise, old) == 0.25
+        assert cfg.imu_noise == dataclasses.replace(ImuNoise(), **{old: 0.25})
+
+
+def test_flat_imu_noise_key_errors_name_the_key():
+    with pytest.raises(ConfigError, match=r"--set: imu_noise\.gyro_bias_walk: expected a finite number >= 0, got -1\.0"):
+        load_config(SyntheticConfig, overrides=["gyro_bias_walk=-1"])
+    with pytest.raises(ConfigError, match="gyro_noise_density: given twice, also as imu_noise.gyro_noise_density"):
+        config_from_dict(SyntheticConfig, {"gyro_noise_density": 1e-3, "imu_noise": {"gyro_noise_density": 2e-3}})
+    # Other nested fields may sit beside a flat one.
+    cfg = config_from_dict(SyntheticConfig, {"gyro_noise_density": 1e-3, "imu_noise": {"accel_bias_walk": 0.0}})
+    assert cfg.imu_noise == ImuNoise(gyro_noise_density=1e-3, accel_bias_walk=0.0)
+
+
+def test_flat_imu_noise_keys_work_on_the_command_line_config():
+    from torchslam.app.run import resolve_config
+
+    _, data, resolved = resolve_config("nislam", None, ["data.synthetic.gyro_noise_density=3e-4", "data.synthetic.trajectory=loop"])
+    assert data.synthetic.imu_noise == ImuNoise(gyro_noise_density=3e-4)
+    assert data.synthetic.trajectory is SyntheticTrajectory.LOOP and data.synthetic.trajectory == "loop"
+    assert resolved["data"]["synthetic"]["imu_noise"]["gyro_noise_density"] == 3e-4
+
+
+def test_trajectory_is_an_enum_read_from_its_name():
+    for kind in SYNTHETIC_TRAJECTORIES:
+        cfg = SyntheticConfig(trajectory=kind)
+        assert cfg.trajectory is SyntheticTrajectory(kind) and f"{cfg.trajectory}" == kind
+        assert config_to_dict(cfg)["trajectory"] == kind
+    assert SyntheticConfig(trajectory="HandHeld").trajectory is SyntheticTrajectory.HANDHELD
 
 
 def test_bad_trajectory_lists_valid_ones():
@@ -306,7 +355,7 @@ def test_rendered_noise_grows_with_depth_squared():
 
 
 def test_sequence_imu_matches_the_camera_motion():
-    quiet = dict(
+    quiet = ImuNoise(
         gyro_noise_density=0.0,
         gyro_bias_walk=0.0,
         gyro_bias_init=0.0,
@@ -314,7 +363,7 @@ def test_sequence_imu_matches_the_camera_motion():
         accel_bias_walk=0.0,
         accel_bias_init=0.0,
     )
-    cfg = _small(frames=150, trajectory="orbit", **quiet)
+    cfg = _small(frames=150, trajectory="orbit", imu_noise=quiet)
     seq = generate_sequence(cfg)
     imu = seq.imu
     assert imu.timestamps[0] == 0 and imu.timestamps[-1] >= seq.timestamps[-1]

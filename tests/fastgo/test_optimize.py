@@ -164,7 +164,7 @@ def test_invalid_pairs_and_options_raise():
         optimize(P.T_init, P.pairs, P.stats, fixed=6)
     with pytest.raises(ConfigError, match="unknown option"):
         optimize(P.T_init, P.pairs, P.stats, iteratons=3)
-    with pytest.raises(ConfigError, match="valid: l2, huber"):
+    with pytest.raises(ConfigError, match=r"'welsch' is not one of \['l2', 'huber'"):
         FastGOConfig(robust="welsch")
 
 

@@ -132,8 +132,9 @@ def test_bad_input_raises():
         ORBConfig(scale_factor=1.0)
     with pytest.raises(ConfigError, match="wta_k"):
         ORBConfig(wta_k=3)
-    with pytest.raises(ConfigError, match="score_type"):
-        ORBConfig(score_type="harris")
+    assert ORBConfig(score_type="fast").score_type is ORBScore.FAST
+    with pytest.raises(ConfigError, match=r"score_type: 'sobel' is not one of \['harris', 'fast'\]"):
+        ORBConfig(score_type="sobel")
     with pytest.raises(ConfigError, match="n_features"):
         ORBConfig(n_features=0)
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam.errors import ShapeError, check_shape
+from torchslam.errors import ConfigError, ShapeError, check_shape
 from torchslam.geometry import (
     PinholeCamera,
     backproject_depth,
@@ -52,7 +52,7 @@ def test_pyramid_scaling_keeps_pixel_centres_consistent():
     torch.testing.assert_close(
         scale_intrinsics(cam.as_tensor(torch.float64), 0.5), half.as_tensor(torch.float64), atol=1e-12, rtol=0
     )
-    with pytest.raises(ShapeError, match="focal lengths"):
+    with pytest.raises(ConfigError, match="focal lengths"):
         PinholeCamera(0.0, 1.0, 0.0, 0.0, 10, 10)
 
 

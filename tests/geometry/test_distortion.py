@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchslam.errors import ShapeError
+from torchslam.errors import ConfigError, ShapeError
 from torchslam.geometry import (
     PinholeCamera,
     backproject_depth,
@@ -100,16 +100,16 @@ def test_camera_distortion_validation_and_scaling():
     for bad in ((0.1,), (0.1, 0.2), (0.1, 0.2, 0.3), (0.0,) * 6, (0.0,) * 9):
         with pytest.raises(ShapeError, match="0, 4, 5 or 8 coefficients"):
             PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480, bad)
-    with pytest.raises(ShapeError, match="finite"):
+    with pytest.raises(ConfigError, match="finite"):
         PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480, (0.1, float("nan"), 0.0, 0.0))
-    with pytest.raises(ShapeError, match="sequence of numbers"):
+    with pytest.raises(ConfigError, match="sequence of numbers"):
         PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480, ("a", 0.0, 0.0, 0.0))
 
 
 def test_uninvertible_distortion_raises():
     # k1 strongly negative folds the image over before its corners: no ray reaches them.
     cam = PinholeCamera(100.0, 100.0, 320.0, 240.0, 640, 480, (-2.0, 0.0, 0.0, 0.0))
-    with pytest.raises(ShapeError, match="cannot be inverted"):
+    with pytest.raises(ConfigError, match="cannot be inverted"):
         undistorted_rays(cam)
 
 
@@ -129,5 +129,5 @@ def test_undistorted_rays_with_a_step_are_the_strided_full_rays_and_cached():
     again.zero_()
     assert (cam, 2) in camera_module._RAYS_CACHE
     assert torch.equal(undistorted_rays(cam, step=2), full[::2, ::2].reshape(-1, 2))
-    with pytest.raises(ShapeError, match="step"):
+    with pytest.raises(ConfigError, match="step"):
         undistorted_rays(cam, step=0)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchslam.data import Trajectory, read_tum_trajectory
-from torchslam.errors import ConfigError, ShapeError
+from torchslam.errors import ConfigError, InvalidValueError, ShapeError
 from torchslam.geometry import se3_from_Rt, so3_exp, so3_log
 from torchslam.imu import (
     AttitudeStream,
@@ -279,7 +279,7 @@ def test_bad_input_raises_named_errors():
         ImuData(t, torch.zeros(5, 3), torch.zeros(5, 3, dtype=F64))
     with pytest.raises(ShapeError, match="accel"):
         ImuData(t, torch.zeros(5, 3, dtype=F64), torch.zeros(4, 3, dtype=F64))
-    with pytest.raises(ShapeError, match="strictly increasing"):
+    with pytest.raises(InvalidValueError, match="strictly increasing"):
         ImuData(torch.tensor([0.0, 1.0, 1.0], dtype=F64), torch.zeros(3, 3, dtype=F64), torch.zeros(3, 3, dtype=F64))
     with pytest.raises(ConfigError, match="gyro_bias_walk"):
         ImuNoise(gyro_bias_walk=-1.0)

@@ -204,7 +204,7 @@ def test_bad_inputs_raise():
     A = random_system(4, chain_with_loops(4, g, 1), g)
     with pytest.raises(ShapeError, match="rhs"):
         solve_block_sparse(A, torch.zeros(4, 3, dtype=torch.float64))
-    with pytest.raises(ConfigError, match="valid: auto, cholesky, dense, pcg"):
+    with pytest.raises(ConfigError, match=r"solver method: 'qr' is not one of \['auto', 'cholesky', 'dense', 'pcg'\]"):
         solve_block_sparse(A, torch.zeros(4, 6, dtype=torch.float64), method="qr")
     with pytest.raises(ShapeError, match="rows/cols"):
         analyze(3, torch.tensor([0, 5]), torch.tensor([1, 2]))

@@ -2,6 +2,8 @@
 
 import dataclasses
 
+import re
+
 import pytest
 import torch
 
@@ -212,7 +214,7 @@ def test_lost_frames_are_counted_apart_from_tracked_ones(tmp_path):
 
 
 def test_bad_config_values_name_the_key():
-    with pytest.raises(ConfigError, match="frontend: unknown 'icp'; valid: sparse, dense"):
+    with pytest.raises(ConfigError, match=re.escape("frontend: 'icp' is not one of ['sparse', 'dense']")):
         GCSlamConfig(frontend="icp")
     with pytest.raises(ConfigError, match="keyframe_displacement"):
         config_from_dict(GCSlamConfig, {"keyframe_displacement": 0})

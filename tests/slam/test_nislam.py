@@ -3,6 +3,8 @@
 import dataclasses
 import math
 
+import re
+
 import pytest
 import torch
 
@@ -112,7 +114,7 @@ def test_attitude_gap_frames_are_not_tracked():
 
 
 def test_bad_config_values_name_the_key():
-    with pytest.raises(ConfigError, match="attitude: unknown 'gyro'; valid: auto, imu, simulated, groundtruth"):
+    with pytest.raises(ConfigError, match=re.escape("attitude: 'gyro' is not one of ['auto', 'imu', 'simulated', 'groundtruth']")):
         NISlamConfig(attitude="gyro")
     with pytest.raises(ConfigError, match=r"kcc.sigmaa: unknown key"):
         config_from_dict(NISlamConfig, {"kcc": {"sigmaa": 1.0}})
@@ -189,5 +191,5 @@ def test_options_are_enums_accepting_todays_strings():
     cfg = NISlamConfig(attitude="groundtruth", gravity="-z")
     assert cfg.attitude is AttitudeSource.GROUNDTRUTH and cfg.gravity is Gravity.NEG_Z
     assert cfg.attitude == "groundtruth"
-    with pytest.raises(ConfigError, match="gravity: unknown 'w'; valid: auto, x, -x, y, -y, z, -z"):
+    with pytest.raises(ConfigError, match=re.escape("gravity: 'w' is not one of ['auto', 'x', '-x', 'y', '-y', 'z', '-z']")):
         NISlamConfig(gravity="w")

@@ -29,7 +29,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import DataFormatError, ShapeError
+from ..errors import ConfigError, DataFormatError, ShapeError
 from ..geometry import PinholeCamera
 
 __all__ = [
@@ -215,7 +215,7 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
         raise DataFormatError(f"{where}: depth_scale must be > 0, got {depth_scale}")
     try:
         camera = PinholeCamera(fx, fy, cx, cy, width, height, distortion)
-    except ShapeError as exc:
+    except (ShapeError, ConfigError) as exc:
         raise DataFormatError(f"{where}: {exc}") from exc
     problem = _camera_problem(camera, depth_scale)
     if problem is not None:
@@ -245,8 +245,9 @@ def resolve_calibration(
     Raises:
         DataFormatError: when neither argument, file nor preset gives a value (the message says
             to add ``calibration.txt``), or ``calibration.txt`` is malformed.
-        ShapeError: for a ``camera`` that is not a PinholeCamera, implausible ``camera``
-            intrinsics, or a ``depth_scale`` outside ``DEPTH_SCALE_RANGE``.
+        ShapeError: for a ``camera`` that is not a PinholeCamera.
+        ConfigError: for implausible ``camera`` intrinsics, or a ``depth_scale`` outside
+            ``DEPTH_SCALE_RANGE``.
     """
     root = Path(root)
     if camera is not None and not isinstance(camera, PinholeCamera):
@@ -257,14 +258,14 @@ def resolve_calibration(
         except (TypeError, ValueError):
             ok = False
         if not ok:
-            raise ShapeError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
+            raise ConfigError(f"depth_scale: expected a finite number > 0, got {depth_scale!r}")
         depth_scale = float(depth_scale)
         if not DEPTH_SCALE_RANGE[0] <= depth_scale <= DEPTH_SCALE_RANGE[1]:
-            raise ShapeError(_depth_scale_problem(depth_scale))
+            raise ConfigError(_depth_scale_problem(depth_scale))
     if camera is not None:
         problem = _camera_problem(camera)
         if problem is not None:
-            raise ShapeError(f"camera: implausible intrinsics: {problem[1]}")
+            raise ConfigError(f"camera: implausible intrinsics: {problem[1]}")
     fallback: tuple[PinholeCamera, float] | None = None
     fallback_source = ""
     calib_path = root / CALIBRATION_FILE

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ShapeError, check_shape
+from ..errors import ConfigError, check_shape
 from ..geometry import PinholeCamera
 from .trajectory import Trajectory
 
@@ -108,7 +108,7 @@ def associate_timestamps(first: Tensor, second: Tensor, max_gap: float = 0.02) -
     check_shape(first, "N", "first")
     check_shape(second, "M", "second")
     if max_gap < 0:
-        raise ShapeError(f"max_gap: must be >= 0, got {max_gap}")
+        raise ConfigError(f"max_gap: must be >= 0, got {max_gap}")
     a = first.detach().cpu().to(torch.float64).numpy()
     b = second.detach().cpu().to(torch.float64).numpy()
     if a.size == 0 or b.size == 0:

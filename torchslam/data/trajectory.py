@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..errors import DataFormatError, ShapeError, check_shape
+from ..errors import DataFormatError, ShapeError, check_increasing, check_shape
 from ..geometry import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw, se3_from_Rt
 
 __all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory"]
@@ -40,8 +40,7 @@ class Trajectory:
         check_shape(self.T_wc, "N 4 4", "T_wc", dims)
         if self.timestamps.dtype != torch.float64:
             raise ShapeError(f"timestamps: expected float64, got {self.timestamps.dtype}")
-        if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
-            raise ShapeError("timestamps: must be strictly increasing")
+        check_increasing(self.timestamps, "timestamps")
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..data.frame import associate_timestamps
 from ..data.trajectory import Trajectory
-from ..errors import ConfigError, ShapeError, TorchSlamError, check_shape
+from ..errors import ConfigError, ShapeError, TorchSlamError, check_shape, parse_choice
 from ..geometry import se3_inverse, so3_angle, umeyama_alignment
 
 __all__ = [
@@ -95,17 +95,6 @@ class DeltaUnit(str, Enum):
     """``delta`` matched poses apart."""
     SECONDS = "seconds"
     """At least ``delta`` seconds apart (ground-truth clock)."""
-
-
-def _parse_option(enum_cls: type[Enum], value: Any, name: str) -> Any:
-    if isinstance(value, enum_cls):
-        return value
-    valid = ", ".join(repr(m.value) for m in enum_cls)
-    if isinstance(value, str):
-        for member in enum_cls:
-            if member.value == value.strip().lower():
-                return member
-    raise ConfigError(f"{name}: unknown option {value!r}; valid options are {valid}")
 
 
 def _check_trajectory(traj: Any, name: str) -> None:
@@ -188,7 +177,7 @@ def associate_trajectories(
     offset = _check_seconds(offset, "offset")
     if max_dt < 0:
         raise ConfigError(f"max_dt: must be >= 0 seconds, got {max_dt}")
-    rule = _parse_option(Association, association, "association")
+    rule = parse_choice(Association, association, "association")
     t_est = est.timestamps.detach().cpu() + offset
     t_gt = gt.timestamps.detach().cpu()
     if rule is Association.NEAREST:
@@ -417,7 +406,7 @@ def ate(
         ShapeError: an argument is not a well-formed Trajectory.
         EvaluationError: no common timestamps, or too few poses for the alignment.
     """
-    mode = _parse_option(AlignMode, align, "align")
+    mode = parse_choice(AlignMode, align, "align")
     T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset, association)
     p_est, p_gt = T_est[:, :3, 3], T_gt[:, :3, 3]
     T_align, scale = _alignment(p_est, p_gt, mode)
@@ -431,7 +420,7 @@ def ate(
         T_align=T_align,
         scale=float(scale),
         matched=int(errors.shape[0]),
-        association=_parse_option(Association, association, "association").value,
+        association=parse_choice(Association, association, "association").value,
         max_dt=float(max_dt),
     )
 
@@ -458,7 +447,7 @@ def rpe_pairs(
         (P, 2) int64 pairs on the device of ``timestamps``, sorted by i.
     """
     check_shape(timestamps, "K", "timestamps")
-    unit = _parse_option(DeltaUnit, unit, "unit")
+    unit = parse_choice(DeltaUnit, unit, "unit")
     k = timestamps.shape[0]
     device = timestamps.device
     if unit is DeltaUnit.FRAMES:
@@ -543,8 +532,8 @@ def rpe(
         ShapeError: an argument is not a well-formed Trajectory.
         EvaluationError: no common timestamps, or no pair ``delta`` apart.
     """
-    mode = _parse_option(AlignMode, align, "align")
-    unit = _parse_option(DeltaUnit, unit, "unit")
+    mode = parse_choice(AlignMode, align, "align")
+    unit = parse_choice(DeltaUnit, unit, "unit")
     T_est, T_gt, stamps = _matched_poses(est, gt, max_dt, offset, association)
     pairs = rpe_pairs(stamps, delta, unit, all_pairs)
     k = T_est.shape[0]

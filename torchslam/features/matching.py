@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, DTypeError, ShapeError, check_shape
+from ..errors import ConfigError, DTypeError, ShapeError, check_shape, parse_choice
 
 __all__ = [
     "HammingKernel",
@@ -100,15 +100,6 @@ class BatchedMatches(NamedTuple):
 
     index: Tensor
     distance: Tensor
-
-
-def _enum(value, cls, name: str):
-    if isinstance(value, cls):
-        return value
-    for member in cls:
-        if value == member.value:
-            return member
-    raise ConfigError(f"{name}: {value!r} is not one of {[m.value for m in cls]}")
 
 
 def _check_descriptors(d: Tensor, spec: str, name: str, dims: dict) -> None:
@@ -256,7 +247,7 @@ def hamming_distance(d1: Tensor, d2: Tensor, kernel: HammingKernel | str = Hammi
     Returns:
         (..., K1, K2) int32 distances in bits, in [0, 256].
     """
-    kernel = _enum(kernel, HammingKernel, "kernel")
+    kernel = parse_choice(HammingKernel, kernel, "kernel")
     _check_descriptors(d1, "... K1 32", "d1", {})
     _check_descriptors(d2, "... K2 32", "d2", {})
     if d1.shape[:-2] != d2.shape[:-2]:
@@ -463,7 +454,7 @@ def match_descriptors_batched(
     if d1.device != d2.device:
         raise ShapeError(f"d2: expected device {d1.device} as d1, got {d2.device}")
     _check_match_args(max_distance, ratio)
-    kernel = _enum(kernel, HammingKernel, "kernel")
+    kernel = parse_choice(HammingKernel, kernel, "kernel")
     if valid1 is None:
         valid1 = torch.ones(d1.shape[:2], dtype=torch.bool, device=d1.device)
     if valid2 is None:
@@ -477,7 +468,7 @@ def match_descriptors_batched(
 
 def _resolve_backend(backend: MatchBackend | str, device: torch.device) -> MatchBackend:
     """``auto`` is OpenCV on the CPU (several times faster there) and torch elsewhere."""
-    backend = _enum(backend, MatchBackend, "backend")
+    backend = parse_choice(MatchBackend, backend, "backend")
     if backend is MatchBackend.AUTO:
         return MatchBackend.OPENCV if device.type == "cpu" else MatchBackend.TORCH
     return backend
@@ -519,7 +510,7 @@ def match_descriptors(
         raise ShapeError(f"d2: expected device {d1.device} as d1, got {d2.device}")
     _check_match_args(max_distance, ratio)
     backend = _resolve_backend(backend, d1.device)
-    kernel = _enum(kernel, HammingKernel, "kernel")
+    kernel = parse_choice(HammingKernel, kernel, "kernel")
     if backend is MatchBackend.OPENCV:
         res = _match_opencv(d1, d2, max_distance, mutual, ratio)
     else:

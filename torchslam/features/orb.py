@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_limits
+from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_limits, parse_choice
 
 __all__ = ["ORBConfig", "ORBScore", "Features", "extract_orb", "rgb_to_grey_u8", "DESCRIPTOR_BYTES"]
 
@@ -80,8 +80,7 @@ class ORBConfig:
         check_limits(self)
         if not self.first_level < self.n_levels:
             raise ConfigError(f"first_level: must be in [0, n_levels), got {self.first_level}")
-        if not isinstance(self.score_type, ORBScore):
-            raise ConfigError(f"score_type: expected one of {[s.value for s in ORBScore]}, got {self.score_type!r}")
+        object.__setattr__(self, "score_type", parse_choice(ORBScore, self.score_type, "score_type"))
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ShapeError, check_float, check_shape
+from ..cache import FifoCache
+from ..errors import ConfigError, ShapeError, check_float, check_shape
 
 __all__ = [
     "PinholeCamera",
@@ -60,20 +61,20 @@ class PinholeCamera:
 
     def __post_init__(self) -> None:
         if not (self.fx > 0 and self.fy > 0):
-            raise ShapeError(f"PinholeCamera: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+            raise ConfigError(f"PinholeCamera: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if not (self.width > 0 and self.height > 0):
-            raise ShapeError(f"PinholeCamera: image size must be positive, got {self.width}x{self.height}")
+            raise ConfigError(f"PinholeCamera: image size must be positive, got {self.width}x{self.height}")
         if self.distortion is not None:
             try:
                 d = tuple(float(c) for c in self.distortion)
             except (TypeError, ValueError) as exc:
-                raise ShapeError(f"PinholeCamera: distortion must be a sequence of numbers, got {self.distortion!r}") from exc
+                raise ConfigError(f"PinholeCamera: distortion must be a sequence of numbers, got {self.distortion!r}") from exc
             if len(d) not in _DISTORTION_LENGTHS:
                 raise ShapeError(
                     f"PinholeCamera: distortion must have 0, 4, 5 or 8 coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {len(d)}"
                 )
             if not all(math.isfinite(c) for c in d):
-                raise ShapeError(f"PinholeCamera: distortion coefficients must be finite, got {d}")
+                raise ConfigError(f"PinholeCamera: distortion coefficients must be finite, got {d}")
             object.__setattr__(self, "distortion", d)
 
     @property
@@ -165,8 +166,7 @@ def distort_planes(x: Tensor, y: Tensor, distortion: tuple[float, ...]) -> tuple
     return xd, yd
 
 
-_RAYS_CACHE: dict[tuple, Tensor] = {}
-_RAYS_CACHE_MAX = 8
+_RAYS_CACHE: FifoCache[Tensor] = FifoCache(8)
 
 
 def undistorted_rays(
@@ -197,22 +197,16 @@ def undistorted_rays(
         with ``step``, (ceil(H/step) * ceil(W/step), 2).
 
     Raises:
-        ShapeError: when the inversion does not converge (distortion too strong for the image,
+        ConfigError: when the inversion does not converge (distortion too strong for the image,
             i.e. the forward model folds over inside the field of view).
     """
     if not isinstance(camera, PinholeCamera):
         raise ShapeError(f"camera: expected a PinholeCamera, got {type(camera).__name__}")
     if not (isinstance(step, int) and step >= 1):
-        raise ShapeError(f"step: expected a positive integer, got {step!r}")
+        raise ConfigError(f"step: expected a positive integer, got {step!r}")
     if not camera.has_distortion:
         return _pinhole_rays(camera, dtype, device, step)
-    key = (camera, step)
-    xy = _RAYS_CACHE.get(key)
-    if xy is None:
-        xy = _invert_distortion(camera, step)
-        if len(_RAYS_CACHE) >= _RAYS_CACHE_MAX:
-            _RAYS_CACHE.pop(next(iter(_RAYS_CACHE)))
-        _RAYS_CACHE[key] = xy
+    xy = _RAYS_CACHE.get_or_compute((camera, step), lambda: _invert_distortion(camera, step))
     return xy.to(dtype=dtype, device=device, copy=True)
 
 
@@ -262,7 +256,7 @@ def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:
     xy = undistort_pixels(pix, camera, newton_steps=8)
     err_px = ((distort_normalized(xy, camera.distortion) - xd) * xd.new_tensor([camera.fx, camera.fy])).abs().max()
     if not bool(torch.isfinite(err_px)) or float(err_px) > 1e-6:
-        raise ShapeError(f"camera: lens distortion {camera.distortion} cannot be inverted over the image (residual {float(err_px):.3g} px)")
+        raise ConfigError(f"camera: lens distortion {camera.distortion} cannot be inverted over the image (residual {float(err_px):.3g} px)")
     return xy
 
 

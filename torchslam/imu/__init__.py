@@ -2,6 +2,7 @@
 
 from .attitude import (
     ATTITUDE_SOURCES,
+    AttitudeSource,
     AttitudeStream,
     ahrs_attitude,
     attitude_errors,
@@ -24,6 +25,7 @@ from .simulate import (
 
 __all__ = [
     "ATTITUDE_SOURCES",
+    "AttitudeSource",
     "AttitudeStream",
     "GRAVITY_W",
     "ImuData",

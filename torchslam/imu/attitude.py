@@ -39,6 +39,7 @@ Convention:
 
 from __future__ import annotations
 
+import enum
 import functools
 import math
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape
+from ..errors import ConfigError, ShapeError, check_float, check_increasing, check_shape, parse_choice
 from ..geometry import quat_xyzw_to_rotmat, rotmat_to_quat_xyzw
 from .simulate import (
     GRAVITY_W,
@@ -59,6 +60,7 @@ from .simulate import (
 
 __all__ = [
     "ATTITUDE_SOURCES",
+    "AttitudeSource",
     "AttitudeStream",
     "ahrs_attitude",
     "attitude_errors",
@@ -68,7 +70,15 @@ __all__ = [
 ]
 
 # The providers' labels; a run records which one it used.
-ATTITUDE_SOURCES = ("groundtruth", "simulated", "imu")
+class AttitudeSource(enum.Enum):
+    """Where an attitude stream comes from."""
+
+    GROUNDTRUTH = "groundtruth"
+    SIMULATED = "simulated"
+    IMU = "imu"
+
+
+ATTITUDE_SOURCES = tuple(s.value for s in AttitudeSource)
 
 
 @dataclass(frozen=True)
@@ -91,10 +101,9 @@ class AttitudeStream:
         check_shape(self.R_wc, "N 3 3", "R_wc", dims)
         if self.timestamps.dtype != torch.float64 or self.R_wc.dtype != torch.float64:
             raise ShapeError(f"timestamps, R_wc: expected float64, got {self.timestamps.dtype} and {self.R_wc.dtype}")
-        if self.timestamps.numel() > 1 and not bool((self.timestamps[1:] > self.timestamps[:-1]).all()):
-            raise ShapeError("timestamps: must be strictly increasing")
-        if self.source not in ATTITUDE_SOURCES:
-            raise ConfigError(f"source: expected one of {', '.join(map(repr, ATTITUDE_SOURCES))}, got {self.source!r}")
+        check_increasing(self.timestamps, "timestamps")
+        # Kept as the plain name (it is written to JSON and YAML outputs); the enum decides what is valid.
+        object.__setattr__(self, "source", parse_choice(AttitudeSource, self.source, "source").value)
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])

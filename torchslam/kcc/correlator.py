@@ -48,6 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..cache import FifoCache
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape
 from ..optim import positive_parameter, positive_value
 from ._select import where
@@ -433,7 +434,7 @@ def kcc_response(x: Tensor, filt: KCCFilter, sigma) -> Tensor:
 # Largest Newton step (pixels) at which the Fourier refinement stops early.
 _NEWTON_TOL = 1e-4
 
-_FOURIER_TABLES: dict[tuple, tuple[Tensor, Tensor, Tensor, Tensor, Tensor]] = {}
+_FOURIER_TABLES: FifoCache[tuple[Tensor, Tensor, Tensor, Tensor, Tensor]] = FifoCache(8)
 
 
 def _fourier_tables(
@@ -461,10 +462,7 @@ def _fourier_tables(
 
     axis = torch.cat([torch.zeros(H, dtype=torch.long, device=device), torch.ones(fx.shape[0], dtype=torch.long, device=device)])
     tables = (torch.cat([wy, wx]), axis, damp * _half_weights(W, damp)[None, :] / (H * W), orders(wy), orders(wx))
-    if len(_FOURIER_TABLES) >= 8:
-        _FOURIER_TABLES.pop(next(iter(_FOURIER_TABLES)))
-    _FOURIER_TABLES[key] = tables
-    return tables
+    return _FOURIER_TABLES.put(key, tables)
 
 
 def _refine_fourier(

@@ -25,7 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, DTypeError, ShapeError, check_float, check_shape
+from ..cache import FifoCache, tensor_key
+from ..errors import ConfigError, DTypeError, InvalidValueError, ShapeError, check_float, check_shape
 from ..geometry.camera import distort_planes
 from ._select import where
 
@@ -117,22 +118,29 @@ def rgbd_to_points(
     z = where(valid, z, 0.0)
     # The points are stored one coordinate per plane, (B, 3, H*W), and returned as the (B, H*W, 3)
     # transposed view: the rotations downstream (``_rotate_planar``) then read contiguous
-    # planes (~4x faster GEMM on CPU than over interleaved xyz), and stacking planes is a plain
-    # copy where interleaving costs ~1 ms per frame. The values are the same.
+    # planes (a well-shaped GEMM, unlike interleaved xyz), and stacking planes is a plain copy
+    # where interleaving copies element by element. The values are the same.
     points = torch.stack([rx * z, ry * z, z], dim=1).transpose(1, 2)  # (B, H*W, 3)
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 
-_RAYS: dict[tuple, tuple[Tensor, Tensor]] = {}
-_RAYS_MAX = 8
+# (intrinsics tensor, (rx, ry)) per (H, W, intrinsics identity): the tensor is kept so its id stays unique.
+_RAYS: FifoCache[tuple[Tensor, tuple[Tensor, Tensor]]] = FifoCache(8)
 
 
 def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
-    """((B, H*W), (B, H*W)) factors ``(u - c_x) / f_x`` and ``(v - c_y) / f_y``, cached per camera."""
-    key = (H, W, intr.dtype, intr.device, tuple(intr.detach().cpu().flatten().tolist()))
-    hit = _RAYS.get(key) if not intr.requires_grad else None
-    if hit is not None:
-        return hit
+    """((B, H*W), (B, H*W)) factors ``(u - c_x) / f_x`` and ``(v - c_y) / f_y``, cached per intrinsics tensor.
+
+    The key is the tensor's identity and version (``cache.tensor_key``), never its values, so a
+    lookup does not wait for the device; a caller that passes the same intrinsics tensor every
+    frame hits, a new tensor with equal values recomputes the same factors.
+    """
+    if intr.requires_grad:
+        return _compute_pixel_rays(intr, H, W)
+    return _RAYS.get_or_compute((H, W, *tensor_key(intr)), lambda: (intr, _compute_pixel_rays(intr, H, W)))[1]
+
+
+def _compute_pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     v, u = torch.meshgrid(
         torch.arange(H, dtype=intr.dtype, device=intr.device),
         torch.arange(W, dtype=intr.dtype, device=intr.device),
@@ -140,12 +148,7 @@ def _pixel_rays(intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
     )
     u, v = u.reshape(1, -1), v.reshape(1, -1)
     fx, fy, cx, cy = (intr[:, k : k + 1] for k in range(4))
-    rays = ((u - cx) / fx, (v - cy) / fy)
-    if not intr.requires_grad:
-        if len(_RAYS) >= _RAYS_MAX:
-            _RAYS.pop(next(iter(_RAYS)))
-        _RAYS[key] = rays
-    return rays
+    return ((u - cx) / fx, (v - cy) / fy)
 
 
 def sample_grey(
@@ -205,7 +208,7 @@ def sample_grey(
     # u in [-0.5, W - 0.5] and v in [-0.5, H - 0.5] are |g| <= 1.
     inside = front & (gx.abs() <= 1) & (gy.abs() <= 1)  # (B, N)
     # Interleaved as a complex tensor's (real, imag) pairs: bit-identical to stacking on a new
-    # last axis, which copies element by element (~0.7 ms per 640x480 frame on CPU, 0.08 this way).
+    # last axis, which copies element by element.
     grid = torch.view_as_real(torch.complex(gx, gy)).view(B, H, W, 2)
     ok = valid & inside
     return _sample_grey_at(_grey_image(rgb, grey_image), grid, ok, H, W, points.dtype), ok
@@ -249,8 +252,8 @@ def sample_grey_rotated(
     part of the warp (the identity, and every pinhole warp's first order) is reproduced exactly
     and the rest is smooth: with the TUM fr1 lens at 640 x 480 and the default step the sampling
     positions differ from ``sample_grey``'s by at most 0.008 px for a 0.4 degree rotation and
-    0.02 px for 1.1 degrees (tested at the equivalent quarter size), at a third of the cost on a
-    CPU core (2.0 against 4-6 ms per frame: one rotation per node, no per-point distortion).
+    0.02 px for 1.1 degrees (tested at the equivalent quarter size), at a fraction of the cost
+    (one rotation per node, no per-point distortion).
 
     Args:
         rgb: (B, 3, H, W) colour in [0, 1].
@@ -311,7 +314,7 @@ def sample_grey_rotated(
         gx, gy, front = _project_pinhole(nodes, R, intr, H, W)
     behind = ~front.all(dim=1)  # (B,) items the warp cannot serve
     if bool(behind.any()) and points is None:
-        raise ShapeError("rotation: turns part of the image behind the camera; pass the points (or use sample_grey)")
+        raise InvalidValueError("rotation: turns part of the image behind the camera; pass the points (or use sample_grey)")
     coarse = torch.stack([gx, gy], dim=1).view(B, 2, hc, wc)
     grid = F.interpolate(coarse, size=(H, W), mode="bilinear", align_corners=True)  # (B, 2, H, W)
     inside = ((grid[:, 0].abs() <= 1) & (grid[:, 1].abs() <= 1)).flatten(1)
@@ -327,8 +330,8 @@ def sample_grey_rotated(
 
 # The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come
 # out of ``_rotate_planar`` as planes, and interleaving them into (B, N, 2) before the
-# element-wise arithmetic made every later op strided (~5 ms per 640x480 frame on CPU instead of
-# ~1 ms). Only the final grid is interleaved, once, as ``grid_sample`` needs it.
+# element-wise arithmetic would make every later op strided. Only the final grid is interleaved,
+# once, as ``grid_sample`` needs it.
 
 
 def _project_pinhole(points: Tensor, rotation: Tensor, intr: Tensor, H: int, W: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -396,8 +399,7 @@ def _rotate_planar(points: Tensor, rotation: Tensor | None) -> Tensor:
     """(B, 3, N) rotated points, one coordinate per row.
 
     ``R @ P^T`` with the (B, N, 3) points read as a transposed matrix is one well-shaped GEMM
-    (about 2.5x faster than the equivalent ``einsum`` over the point axis on CPU, and
-    bit-identical to it) and leaves each coordinate contiguous for the element-wise code after.
+    (faster than the equivalent ``einsum`` over the point axis on CPU, and bit-identical to it) and leaves each coordinate contiguous for the element-wise code after.
     """
     pt = points.transpose(1, 2)
     return pt if rotation is None else torch.matmul(rotation, pt)
@@ -468,18 +470,12 @@ def choose_resolution(
     return torch.where(n > 0, r, torch.full_like(r, math.nan))
 
 
-_POINT_IDS: dict[tuple, Tensor] = {}
+_POINT_IDS: FifoCache[Tensor] = FifoCache(8)
 
 
 def _point_ids(n: int, device) -> Tensor:
     """``arange(n)`` as int64, kept per (n, device): the z-buffer keys need it for every frame."""
-    key = (n, torch.device(device))
-    ids = _POINT_IDS.get(key)
-    if ids is None:
-        if len(_POINT_IDS) >= 8:
-            _POINT_IDS.pop(next(iter(_POINT_IDS)))
-        ids = _POINT_IDS[key] = torch.arange(n, device=device)
-    return ids
+    return _POINT_IDS.get_or_compute((n, torch.device(device)), lambda: torch.arange(n, device=device))
 
 
 def orthographic_project(
