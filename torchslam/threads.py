@@ -1,13 +1,13 @@
-"""The CPU thread counts a run uses: a measured default, overridden by a flag or a variable.
+"""The CPU thread counts a run uses: a default chosen by benchmark, overridden by a flag or a variable.
 
 torchslam's per-frame work is many small tensor operations (FFTs of one ortho image, 6x6 blocks
 of a pose graph, a few thousand 3-D points). Spread over several PyTorch intra-op threads they
 gain nothing on an idle machine, and beside any other CPU-bound process they collapse: OpenMP's
 workers busy-wait at every parallel region for a core another process holds, so on a loaded
-2-core machine NI-SLAM ran 5-13x and a FastGO solve 25-37x slower with two threads than with one
-(``scripts/bench_threads.py``; the README holds its table). OpenCV's pool (ORB detection and
-Hamming matching in GC-SLAM's sparse front-end) waits without spinning: with all cores it was as
-fast or faster than with one, idle and beside a busy process. So by default PyTorch gets one
+machine NI-SLAM and FastGO run several times slower with two threads than with one
+(``scripts/bench_threads.py``; the figures are in the README, Results: Threads). OpenCV's pool
+(ORB detection and Hamming matching in GC-SLAM's sparse front-end) waits without spinning, so
+using every core does not slow it, idle or beside a busy process. So by default PyTorch gets one
 intra-op thread and OpenCV every core the process may run on. ``--threads N`` or
 ``TORCHSLAM_THREADS=N`` (the flag wins over the variable) set both pools to N. Parallelism across
 sequences (``torchslam batch``, lockstep groups, ``torchrun``) is where more cores pay off.

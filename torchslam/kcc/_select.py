@@ -1,10 +1,9 @@
 """Element-wise selection that is fast on CPU: ``torch.where`` computed bitwise.
 
-On the CPU build torchslam uses, ``torch.where`` over a bool mask is not vectorised: for the
-307,200 points of a 640x480 frame it costs ~0.9 ms in float32, against ~0.06-0.14 ms for the same
-selection done with integer bit operations on the values' bit patterns. The NI-SLAM front-end
-selects about a dozen full-resolution arrays per frame, so this is several milliseconds per
-frame. The bitwise form gives bit-identical results (it moves bit patterns, it does no
+On the CPU build torchslam uses, ``torch.where`` over a bool mask is not vectorised, while the
+same selection done with integer bit operations on the values' bit patterns is. The NI-SLAM
+front-end selects about a dozen full-resolution arrays per frame, so the difference shows in the
+per-frame time. The bitwise form gives bit-identical results (it moves bit patterns, it does no
 arithmetic), including NaN, inf and signed zeros.
 
 It falls back to ``torch.where`` where it would not help or not be valid: off the CPU (GPU

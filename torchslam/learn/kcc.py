@@ -1,6 +1,6 @@
 """NI-SLAM front-end training objective: image-plane translation of keyframe/frame pairs.
 
-A pair is a keyframe and a frame some steps later. Exactly as ``slam.nislam.track_step`` does,
+A pair is a keyframe and a frame some steps later. Exactly as ``kcc.frontend.track_step`` does,
 the keyframe's own cloud is projected orthographically at the resolution ``r_k`` chosen for it
 (``choose_resolution``), the frame's cloud is rotated into the keyframe's attitude
 (``R_wk^T R_wi``, here from ground truth) and projected at the same ``r_k``, and both become

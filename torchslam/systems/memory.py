@@ -7,12 +7,12 @@ sizes, one thread), times the pixel counts a configuration implies:
 - NI-SLAM: ``NISLAM_BYTES_PER_ORTHO_PIXEL`` per orthographic pixel (``kcc.ortho_height x
   kcc.ortho_width``) and sequence in the batch: projected grey, depth and mask, the two KCC
   channels, their rfft2 spectra, the keyframe map and filter, the correlation output and the
-  sub-pixel and fusion temporaries (measured 237 to 361 B at 2048^2 and 3072^2);
+  sub-pixel and fusion temporaries (from runs at 2048^2 and 3072^2);
 - both systems: ``BYTES_PER_IMAGE_PIXEL`` per input image pixel and sequence (decoded colour and
-  depth, back-projected points and rays, ORB; measured 303 to 331 B at 640 x 480 and 1280 x 960);
+  depth, back-projected points and rays, ORB; from runs at 640 x 480 and 1280 x 960);
 - GC-SLAM with the dense front-end: ``DENSE_BYTES_PER_WORKING_PIXEL`` per pixel of the dense
   working resolution (the image reduced by ``round(W / dense.width)``): the pyramid of both frames,
-  the Jacobian rows and IRLS weights (measured 516 B at 1280 x 960).
+  the Jacobian rows and IRLS weights (from runs at 1280 x 960).
 
 A configuration whose estimate exceeds the device's total memory (physical RAM on the CPU, the
 GPU's memory on CUDA) is refused with the figure instead of dying in an allocation part-way.
@@ -34,7 +34,7 @@ __all__ = [
     "NISLAM_BYTES_PER_ORTHO_PIXEL", "check_memory", "check_run_memory", "device_memory", "estimate_memory",
 ]
 
-# The largest measured figure of each, rounded up.
+# The largest per-pixel peak of each part over those runs, rounded up: an upper bound, not a mean.
 NISLAM_BYTES_PER_ORTHO_PIXEL = 368
 BYTES_PER_IMAGE_PIXEL = 336
 DENSE_BYTES_PER_WORKING_PIXEL = 528
