@@ -563,7 +563,7 @@ class TUMSequence:
                 f"the calibration ({self.calibration_source}) says {cam.width}x{cam.height}"
             )
         # Converted with NumPy/OpenCV, which release the GIL and do not wake torch's intra-op
-        # thread pool (that pool made this step 20x slower on a loaded 2-core machine).
+        # thread pool (beside a busy process, that pool's busy-waiting stalls this step).
         rgb_np = np.empty((3, cam.height, cam.width), dtype=np.float32)  # (3, H, W) RGB in [0, 1]
         for channel, plane in zip(rgb_np, reversed(cv2.split(bgr))):
             np.divide(plane, np.float32(255.0), out=channel, dtype=np.float32)

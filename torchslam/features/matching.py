@@ -12,8 +12,8 @@ Matching (``match_descriptors``) returns each query descriptor's nearest neighbo
 kept only when mutual and/or when it passes a ratio test, and always only within
 ``max_distance``. GC-SLAM's defaults: nearest neighbour, Hamming threshold 50, no ratio test.
 On the CPU the ``auto`` backend uses OpenCV's brute-force Hamming search (``cv2.batchDistance``),
-which ``scripts/bench_matching.py`` measured faster than every torch kernel at 2000 x 2000
-descriptors; on other devices the torch path runs.
+which is faster on the CPU than the torch kernels (``scripts/bench_matching.py``); on other
+devices the torch path runs.
 """
 
 from __future__ import annotations
