@@ -41,7 +41,6 @@ Convention:
 
 from __future__ import annotations
 
-import bisect
 import functools
 import logging
 import time
@@ -58,8 +57,8 @@ from ...fastgo import PairStats, optimize_batch
 from ...geometry import PinholeCamera, backproject_depth, project_points, se3_inverse, undistorted_rays
 from ...registration.dense import DenseFrame
 from ...registration.sparse import FrameFeatures, register_sparse_batch
-from ..base import StepReport, SystemOutput, add_stage_ms, empty_output, frame_poses, resample_poses
-from ..framelog import voxel_downsample
+from ..base import StepReport, SystemOutput, add_stage_ms
+from ..framelog import FrameLog, voxel_downsample
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
 from .config import GCSlamConfig
@@ -130,14 +129,9 @@ class GCSlam:
         self.optimizer = Optimizer(cfg, self.monitor)
         self._worker = Worker(self.optimizer, insert_keyframe, cfg.threaded, deferred=self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
-        self.frame_index: list[int] = []
-        self.frame_time: list[float] = []
-        self.frame_geom_time: list[float] = []
-        self.frame_kf: list[int] = []
-        self.frame_T_kf: list[Tensor] = []
-        # Per recorded frame: "lost" (holds the last pose), "unlinked" (an unlinked keyframe
-        # started at the last pose: a motion prior until a loop closure links it) or None.
-        self.frame_prior: list[str | None] = []
+        # Prior tags: "lost" (holds the last pose), "unlinked" (an unlinked keyframe started at
+        # the last pose: a motion prior until a loop closure links it).
+        self.frames = FrameLog()
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0}
         self.inliers: list[int] = []
@@ -231,23 +225,11 @@ class GCSlam:
     def _record_lost(self, frame: Frame) -> None:
         self.counts["lost_frames"] += 1
         self.lost_in_row += 1
-        if not self.frame_index:
-            return  # nothing to hold yet: the frame has no pose
-        self.frame_prior.append("lost")
-        self.frame_index.append(frame.index)
-        self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(frame.geometry_time)
-        self.frame_kf.append(self.frame_kf[-1])
-        self.frame_T_kf.append(self.frame_T_kf[-1])
+        self.frames.hold(frame, "lost")  # before the first pose there is nothing to hold
 
     def _record(self, frame: Frame, kf: int, T_kf: Tensor, prior: str | None = None) -> None:
-        self.frame_prior.append(prior)
-        self.frame_index.append(frame.index)
-        self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(frame.geometry_time)
-        self.frame_kf.append(kf)
         T = T_kf.to(torch.float64)
-        self.frame_T_kf.append(T)
+        self.frames.record(frame, kf, T, prior)
         self._last_T_kf = T
 
     def _new_keyframe(
@@ -274,8 +256,8 @@ class GCSlam:
         m = m[valid[m]]
         colors = rgb.reshape(3, -1)[:, m].T.float()
         anchor = None
-        if reference is None and self.frame_index:
-            anchor = Anchor(self.frame_kf[-1], self.frame_T_kf[-1].cpu())
+        if reference is None and len(self.frames):
+            anchor = Anchor(self.frames.kf[-1], self.frames.T_kf[-1].cpu())
             self.counts["unlinked_keyframes"] += 1
         if self.keyframes:
             self.keyframes[-1].dense = None  # only the current keyframe is registered against densely
@@ -300,12 +282,9 @@ class GCSlam:
         the depth instants (not re-sampled to colour stamps until ``finish``).
         """
         T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
-        # Keyframe ids never decrease along the frames, so the posed frames are a prefix.
-        n = bisect.bisect_left(self.frame_kf, len(T_wk))
-        if n == 0:
+        if not T_wk:
             return None
-        T = frame_poses(torch.stack(T_wk), self.frame_kf[:n], self.frame_T_kf[:n])
-        return Trajectory(torch.tensor(self.frame_geom_time[:n], dtype=torch.float64), T)
+        return self.frames.so_far(torch.stack(T_wk))
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops and lost frames so far, for TensorBoard."""
@@ -315,7 +294,7 @@ class GCSlam:
             "loops_accepted": float(loops["accepted"]),
             "loops_rejected": float(loops["rejected"]),
             "lost_frames": float(self.counts["lost_frames"]),
-            "prior_frames": float(sum(p is not None for p in self.frame_prior)),
+            "prior_frames": float(self.frames.n_prior()),
         }
 
     # ------------------------------------------------------------------ output
@@ -330,49 +309,27 @@ class GCSlam:
         stage_ms = dict(self.stage_ms)
         for k, v in opt.stage_ms.items():
             stage_ms[f"optimizer/{k}"] = v
-        if not self.frame_index:
-            out = empty_output()
-            out.stage_ms = stage_ms
-            out.metrics = self._metrics()
-            return out
+        log = self.frames
+        if not len(log):
+            return FrameLog.empty(stage_ms, self._metrics())
         T_wk = torch.stack(opt.T_wk)
-        T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
+        # A registered pose belongs to the instant of the depth image that gave the 3-D points.
+        # Where the sequence records depth timestamps apart from the colour ones (TUM fr1: ±15 ms),
+        # the trajectory is interpolated (linear / SLERP) at the colour timestamps between
+        # neighbouring depth instants; poses outside their span or across gaps longer than
+        # ``interpolation_max_gap`` stay as registered.
+        T_wc = log.at_frame_times(log.poses(T_wk), self.cfg.interpolation_max_gap)
         points, colors = self._map(T_wk)  # clouds belong to the depth instants: optimised poses as they are
         # keyframes.txt is stamped with the keyframes' colour timestamps: their re-sampled poses.
-        position = {f: p for p, f in enumerate(self.frame_index)}
+        position = {f: p for p, f in enumerate(log.index)}
         kf_rows = torch.tensor([position[k.frame_index] for k in self.keyframes], dtype=torch.int64)
-        return SystemOutput(
-            frame_indices=torch.tensor(self.frame_index, dtype=torch.int64),
-            timestamps=torch.tensor(self.frame_time, dtype=torch.float64),
-            T_wc=T_wc,
-            keyframe_indices=torch.tensor([k.frame_index for k in self.keyframes], dtype=torch.int64),
-            keyframe_T_wc=T_wc[kf_rows],
-            map_points=points,
-            map_colors=colors,
-            stage_ms=stage_ms,
-            metrics=self._metrics(),
-            prior_indices=self._prior_indices(),
-        )
-
-    def _prior_indices(self) -> Tensor:
-        """Sequence indices of the frames on a motion prior: lost ones, and unlinked keyframes no pair links."""
+        # On a motion prior: lost frames, and unlinked keyframes no pair links.
         linked = {k for pair in self.optimizer.pairs for k in pair}
-        rows = [f for f, why, kf in zip(self.frame_index, self.frame_prior, self.frame_kf)
-                if why == "lost" or (why == "unlinked" and kf not in linked)]
-        return torch.tensor(rows, dtype=torch.int64)
-
-    def _at_frame_times(self, T_geom: Tensor) -> Tensor:
-        """Re-sample the poses from the depth instants to the frames' (colour) timestamps.
-
-        A registered pose belongs to the instant of the depth image that gave the 3-D points.
-        Where the sequence records depth timestamps apart from the colour ones (TUM fr1: ±15 ms),
-        the trajectory is interpolated (linear / SLERP) at the colour timestamps between
-        neighbouring depth instants; poses outside their span or across gaps longer than
-        ``interpolation_max_gap`` stay as registered.
-        """
-        t_geom = torch.tensor(self.frame_geom_time, dtype=torch.float64)
-        t_frame = torch.tensor(self.frame_time, dtype=torch.float64)
-        return resample_poses(t_geom, T_geom, t_frame, self.cfg.interpolation_max_gap)
+        prior = log.prior_indices(lambda why, kf: why == "lost" or (why == "unlinked" and kf not in linked))
+        return log.output(
+            T_wc, [k.frame_index for k in self.keyframes], T_wc[kf_rows], points, colors, stage_ms, self._metrics(),
+            prior,
+        )
 
     def _map(self, T_wk: Tensor) -> tuple[Tensor, Tensor]:
         pts = [k.map_points.cpu().double() @ T[:3, :3].T + T[:3, 3] for k, T in zip(self.keyframes, T_wk)]

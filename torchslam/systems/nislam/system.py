@@ -64,8 +64,8 @@ from ...kcc import (
 )
 from ...loop import MILDConfig, MILDDatabase
 from ...optim import LMConfig
-from ..base import SystemOutput, add_stage_ms, frame_poses, resample_poses
-from ..framelog import voxel_downsample
+from ..base import SystemOutput, add_stage_ms
+from ..framelog import FrameLog, voxel_downsample
 from ..memory import NISLAM_BYTES_PER_ORTHO_PIXEL
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
@@ -151,12 +151,8 @@ class NISlam:
         self.attitude = attitude_stream(sequence, cfg)
         self.R_corr = torch.eye(3, dtype=torch.float64)
         self.keyframes: list[_Keyframe] = []
-        self.frame_index: list[int] = []
-        self.frame_time: list[float] = []
-        self.frame_geom_time: list[float] = []
-        self.frame_kf: list[int] = []
-        self.frame_T_kf: list[Tensor] = []
-        self.frame_prior: list[bool] = []  # the frame's position is the constant-velocity prediction
+        # Prior tag "velocity": the frame's position is the constant-velocity prediction.
+        self.frames = FrameLog()
         self.edges_i: list[int] = []
         self.edges_j: list[int] = []
         self.edges_T: list[Tensor] = []
@@ -316,10 +312,11 @@ class NISlam:
         A loop correction moves keyframes by different amounts, so velocities straddling one are
         meaningless: the history restarts after every accepted loop.
         """
-        if len(self.frame_T_kf) - self._history_start < 2:
+        log = self.frames
+        if len(log) - self._history_start < 2:
             return None
-        T = [self.keyframes[self.frame_kf[k]].T_wk @ self.frame_T_kf[k] for k in (-2, -1)]
-        t1, t2 = self.frame_time[-2], self.frame_time[-1]
+        T = [self.keyframes[log.kf[k]].T_wk @ log.T_kf[k] for k in (-2, -1)]
+        t1, t2 = log.time[-2], log.time[-1]
         if not t2 > t1:
             return T[1][:3, 3]
         v = (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
@@ -327,18 +324,13 @@ class NISlam:
 
     def _rebase_last_frame(self) -> None:
         """The newest recorded frame became a keyframe: express it relative to itself."""
-        self.frame_kf[-1] = len(self.keyframes) - 1
-        self.frame_T_kf[-1] = torch.eye(4, dtype=torch.float64)
+        self.frames.rebase_last(len(self.keyframes) - 1)
         self._well_tracked = None
 
     def _record(self, frame: Frame, T_wi: Tensor, prior: bool = False) -> None:
+        """Log the frame at world pose ``T_wi`` (4, 4), relative to the current keyframe."""
         kf = self.keyframes[-1]
-        self.frame_prior.append(prior)
-        self.frame_index.append(frame.index)
-        self.frame_time.append(frame.timestamp)
-        self.frame_geom_time.append(frame.geometry_time)
-        self.frame_kf.append(len(self.keyframes) - 1)
-        self.frame_T_kf.append(se3_inverse(kf.T_wk) @ T_wi)
+        self.frames.record(frame, len(self.keyframes) - 1, se3_inverse(kf.T_wk) @ T_wi, "velocity" if prior else None)
 
     def _ensure_filter(self, kf: _Keyframe) -> KCCFilter:
         if kf.filter is None:
@@ -459,7 +451,7 @@ class NISlam:
             logger.info("loop %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, float(bend))
             return
         self.loops["accepted"] += 1
-        self._history_start = len(self.frame_T_kf)
+        self._history_start = len(self.frames)
         for kf, T in zip(self.keyframes, res.T_wc):
             kf.T_wk = T
         # Fuse the back-end into the attitude: the newest keyframe's optimised rotation replaces
@@ -482,11 +474,9 @@ class NISlam:
 
     def estimate_so_far(self) -> Trajectory | None:
         """Every frame tracked so far in the current keyframe poses, at the depth instants (output world)."""
-        if not self.frame_index:
+        if not len(self.frames):
             return None
-        T_wk = self._output_keyframe_poses()
-        T = frame_poses(T_wk, self.frame_kf, self.frame_T_kf)
-        return Trajectory(torch.tensor(self.frame_geom_time, dtype=torch.float64), T)
+        return self.frames.so_far(self._output_keyframe_poses())
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops, fused frames and the last PSR, for TensorBoard."""
@@ -502,42 +492,26 @@ class NISlam:
         return out
 
     def finish(self) -> SystemOutput:
-        from ..base import empty_output
-
-        if not self.frame_index:
-            out = empty_output()
-            out.stage_ms = dict(self.stage_ms)
-            out.metrics = self._metrics()
-            return out
-        T_wk = self._output_keyframe_poses()
-        T_wc = self._at_frame_times(frame_poses(T_wk, self.frame_kf, self.frame_T_kf))
-        points, colors = self._map_points(T_wk)
-        return SystemOutput(
-            frame_indices=torch.tensor(self.frame_index, dtype=torch.int64),
-            timestamps=torch.tensor(self.frame_time, dtype=torch.float64),
-            T_wc=T_wc,
-            keyframe_indices=torch.tensor([kf.frame_index for kf in self.keyframes], dtype=torch.int64),
-            keyframe_T_wc=T_wk,
-            map_points=points,
-            map_colors=colors,
-            stage_ms=dict(self.stage_ms),
-            metrics=self._metrics(),
-            prior_indices=torch.tensor([f for f, p in zip(self.frame_index, self.frame_prior) if p], dtype=torch.int64),
-        )
-
-    def _at_frame_times(self, T_geom: Tensor) -> Tensor:
-        """Re-sample the trajectory from the depth instants to the frames' (colour) timestamps.
+        """The trajectory at the frame timestamps, the keyframes and the map (output world).
 
         Each tracked pose is the camera's at the depth image's instant (``Frame.geometry_time``); the
         trajectory is reported at the frame timestamps, so it is interpolated there (linear in
         translation, SLERP in rotation) between the neighbouring depth instants. On TUM fr1 the
         two alternate ~15 ms before and after the colour stamp, which at 0.4 m/s is ±6 mm.
         Poses outside the span of depth instants, or across a gap longer than
-        ``attitude_max_gap``, are kept as tracked.
+        ``attitude_max_gap``, are kept as tracked. Keyframes are reported at their depth
+        instants, as tracked.
         """
-        t_geom = torch.tensor(self.frame_geom_time, dtype=torch.float64)
-        t_frame = torch.tensor(self.frame_time, dtype=torch.float64)
-        return resample_poses(t_geom, T_geom, t_frame, self.cfg.attitude_max_gap)
+        log = self.frames
+        if not len(log):
+            return FrameLog.empty(dict(self.stage_ms), self._metrics())
+        T_wk = self._output_keyframe_poses()
+        T_wc = log.at_frame_times(log.poses(T_wk), self.cfg.attitude_max_gap)
+        points, colors = self._map_points(T_wk)
+        return log.output(
+            T_wc, [kf.frame_index for kf in self.keyframes], T_wk, points, colors, dict(self.stage_ms), self._metrics(),
+            log.prior_indices(),
+        )
 
     def _metrics(self) -> dict[str, Any]:
         psr = torch.tensor([p for p in self.psr if math.isfinite(p)], dtype=torch.float64)
