@@ -157,7 +157,7 @@ def voxel_downsample(points: torch.Tensor, colors: torch.Tensor, voxel: float) -
     if voxel > 0 and len(P):
         key = torch.floor(P / voxel).to(torch.int64)
         # One int64 per voxel, ordered as the (x, y, z) rows lexicographically: a 1-D unique is
-        # ~20x faster than ``unique(dim=0)`` over rows (0.8 s for 2.6M points on one CPU core).
+        # much cheaper than ``unique(dim=0)`` over rows.
         key = key - key.min(0).values
         span = key.max(0).values + 1
         if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:
