@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..cache import FifoCache
-from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
@@ -108,15 +108,6 @@ class ChannelNorm(str, enum.Enum):
 
     RAW = "raw"
     STANDARDIZE = "standardize"
-
-
-def _enum(cls, value, name):
-    if isinstance(value, cls):
-        return value
-    for m in cls:
-        if value == m.value or value == m.name:
-            return m
-    raise ConfigError(f"{name}: {value!r} is not one of {[m.value for m in cls]}")
 
 
 @dataclass(frozen=True)
@@ -180,9 +171,9 @@ class KCCConfig:
     }
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "subpixel", _enum(Subpixel, self.subpixel, "subpixel"))
-        object.__setattr__(self, "channel_norm", _enum(ChannelNorm, self.channel_norm, "channel_norm"))
-        object.__setattr__(self, "depth_statistic", _enum(DepthStatistic, self.depth_statistic, "depth_statistic"))
+        object.__setattr__(self, "subpixel", parse_choice(Subpixel, self.subpixel, "subpixel"))
+        object.__setattr__(self, "channel_norm", parse_choice(ChannelNorm, self.channel_norm, "channel_norm"))
+        object.__setattr__(self, "depth_statistic", parse_choice(DepthStatistic, self.depth_statistic, "depth_statistic"))
         check_limits(self)
         if not self.T_M > self.T_K:
             raise ConfigError(f"T_M: expected T_M > T_K (the paper's condition), got T_M={self.T_M}, T_K={self.T_K}")
@@ -276,7 +267,7 @@ def kcc_features(
     check_float(depth, "depth")
     if valid.dtype != torch.bool:
         raise DTypeError(f"valid: expected a bool mask, got {valid.dtype}")
-    mode = _enum(ChannelNorm, mode, "mode")
+    mode = parse_choice(ChannelNorm, mode, "mode")
     if not (isinstance(fill_holes, int) and fill_holes >= 1 and fill_holes % 2 == 1):
         raise ConfigError(f"fill_holes: expected a positive odd integer, got {fill_holes!r}")
     x = torch.stack([grey, depth.to(grey.dtype)], dim=1)  # (B, 2, H, W)
@@ -545,7 +536,7 @@ def find_peak(
         the integer peak is kept and ``refined`` is False.
     """
     _check_response(g, "g")
-    subpixel = _enum(Subpixel, subpixel, "subpixel")
+    subpixel = parse_choice(Subpixel, subpixel, "subpixel")
     if not smoothing > 0:
         raise ConfigError(f"smoothing: expected a positive number of pixels, got {smoothing!r}")
     return _find_peak(g, None, subpixel, float(smoothing), int(iterations))
@@ -606,7 +597,7 @@ def kcc_predict(
         KCCPrediction.
     """
     _check_filter(x, filt)
-    subpixel = _enum(Subpixel, subpixel, "subpixel")
+    subpixel = parse_choice(Subpixel, subpixel, "subpixel")
     B = x.shape[0]
     if resolution is not None:
         check_shape(resolution, f"{B}", "resolution")

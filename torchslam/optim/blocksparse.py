@@ -39,6 +39,7 @@ from ..errors import ConfigError, ShapeError, check_float, check_shape, parse_ch
 
 __all__ = [
     "BlockSparseMatrix",
+    "Ordering",
     "BlockCholeskySymbolic",
     "BlockCholeskyFactor",
     "SolverMethod",
@@ -61,6 +62,13 @@ class SolverMethod(enum.Enum):
     def parse(cls, value: "SolverMethod | str") -> "SolverMethod":
         """Return the member for ``value``; a bad name lists the valid ones."""
         return parse_choice(cls, value, "solver method")
+
+
+class Ordering(str, enum.Enum):
+    """Fill-reducing order of the sparse Cholesky: reverse Cuthill-McKee band, or nested dissection."""
+
+    BAND = "band"
+    NESTED = "nested"
 
 
 @dataclass(frozen=True)
@@ -431,7 +439,7 @@ def analyze(
     fixed: Tensor | np.ndarray | None = None,
     block_size: int = 6,
     leaf_size: int = 16,
-    ordering: str = "band",
+    ordering: Ordering | str = Ordering.BAND,
 ) -> BlockCholeskySymbolic:
     """Compute a fill-reducing order and the supernodal structure of a block pattern.
 
@@ -464,8 +472,7 @@ def analyze(
         raise ShapeError(f"rows/cols: expected two (E,) arrays, got {rows_np.shape} and {cols_np.shape}")
     if rows_np.size and (min(rows_np.min(), cols_np.min()) < 0 or max(rows_np.max(), cols_np.max()) >= num_nodes):
         raise ShapeError(f"rows/cols: block indices must lie in [0, {num_nodes})")
-    if ordering not in ("band", "nested"):
-        raise ConfigError(f"ordering: expected 'band' or 'nested', got {ordering!r}")
+    ordering = parse_choice(Ordering, ordering, "ordering")
     if leaf_size < 1:
         raise ConfigError(f"leaf_size: expected >= 1 nodes, got {leaf_size}")
     free = np.ones(num_nodes, dtype=bool)
