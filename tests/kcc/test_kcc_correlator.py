@@ -366,7 +366,7 @@ def test_bad_shapes_raise_shape_error():
         kcc_train(z, torch.tensor([0.1, 0.2, 0.3]), 0.1)
     with pytest.raises(ShapeError, match="resolution"):
         kcc_predict(torch.rand(2, 1, 8, 8), filt, 0.2, torch.ones(3))
-    with pytest.raises(ShapeError, match=r"window: 9 leaves no sidelobe"):
+    with pytest.raises(ConfigError, match=r"window: 9 leaves no sidelobe"):
         peak_to_sidelobe(torch.rand(1, 8, 8), window=9)
     with pytest.raises(ConfigError, match="window"):
         peak_to_sidelobe(torch.rand(1, 8, 8), window=4)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchslam.errors import ConfigError, ShapeError
+from torchslam.errors import ConfigError, InvalidValueError, ShapeError
 from torchslam.optim import (
     BlockSparseMatrix,
     SolverMethod,
@@ -206,7 +206,7 @@ def test_bad_inputs_raise():
         solve_block_sparse(A, torch.zeros(4, 3, dtype=torch.float64))
     with pytest.raises(ConfigError, match=r"solver method: 'qr' is not one of \['auto', 'cholesky', 'dense', 'pcg'\]"):
         solve_block_sparse(A, torch.zeros(4, 6, dtype=torch.float64), method="qr")
-    with pytest.raises(ShapeError, match="rows/cols"):
+    with pytest.raises(InvalidValueError, match="rows/cols"):
         analyze(3, torch.tensor([0, 5]), torch.tensor([1, 2]))
     with pytest.raises(ConfigError, match=r"ordering: 'amd' is not one of \['band', 'nested'\]"):
         analyze(4, A.rows, A.cols, ordering="amd")

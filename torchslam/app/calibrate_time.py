@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from ..data.frame import Sequence
-from ..errors import ConfigError, ShapeError, check_shape
+from ..errors import ConfigError, TorchSlamError, check_shape
 from ..geometry import so3_angle
 from ..imu.attitude import AttitudeStream
 from ..registration.dense import DenseConfig, register_dense
@@ -167,7 +167,7 @@ def estimate_attitude_time_offset(
         raise ConfigError(f"frame_gap, max_pairs, batch: expected >= 1, got {frame_gap}, {max_pairs}, {batch}")
     n = len(sequence)
     if n <= frame_gap:
-        raise ShapeError(f"sequence {sequence.name}: {n} frames, need more than frame_gap = {frame_gap}")
+        raise ConfigError(f"sequence {sequence.name}: {n} frames, need more than frame_gap = {frame_gap}")
     dense = dense or DenseConfig(geometric_weight=10.0)
     starts = torch.linspace(0, n - 1 - frame_gap, min(max_pairs, n - frame_gap)).round().long().unique().tolist()
     t_i, t_j, R_ij = [], [], []
@@ -187,7 +187,7 @@ def estimate_attitude_time_offset(
                 t_j.append(fj[k].geometry_time)
                 R_ij.append(res.T_ij[k, :3, :3].cpu())
     if not R_ij:
-        raise ShapeError(f"sequence {sequence.name}: no frame pair registered; the time offset cannot be estimated")
+        raise TorchSlamError(f"sequence {sequence.name}: no frame pair registered; the time offset cannot be estimated")
     steps = int(round(max_offset / step))
     offsets = torch.arange(-steps, steps + 1, dtype=torch.float64) * step
     ti = torch.tensor(t_i, dtype=torch.float64)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import InvalidValueError, ShapeError, check_float, check_shape
+from ..errors import DTypeError, InvalidValueError, check_float, check_shape
 from ..geometry import se3_adjoint, se3_inverse, se3_log, skew
 from ..optim import BlockSparseMatrix, LMConfig, levenberg_marquardt_se3
 
@@ -60,7 +60,7 @@ def _check_edges(T_wc: Tensor, i: Tensor, j: Tensor, T_ij: Tensor, information: 
     n = dims["N"]
     for name, idx in (("i", i), ("j", j)):
         if idx.dtype != torch.int64:
-            raise ShapeError(f"{name}: expected int64 node indices, got {idx.dtype}")
+            raise DTypeError(f"{name}: expected int64 node indices, got {idx.dtype}")
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n):
             raise InvalidValueError(f"{name}: node indices must lie in [0, {n}), got [{int(idx.min())}, {int(idx.max())}]")
     if bool((i == j).any()):

@@ -144,7 +144,7 @@ def peak_to_sidelobe(g: Tensor, index: Tensor | None = None, window: int = 11, e
     if not (isinstance(window, int) and window >= 1 and window % 2 == 1):
         raise ConfigError(f"window: expected a positive odd integer, got {window!r}")
     if window >= H or window >= W:
-        raise ShapeError(f"window: {window} leaves no sidelobe in a ({H}, {W}) response")
+        raise ConfigError(f"window: {window} leaves no sidelobe in a ({H}, {W}) response")
     if index is None:
         row, col, _ = _argmax(g.detach())
     else:

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError, ShapeError, check_float, check_shape, parse_choice
+from ..errors import ConfigError, DTypeError, InvalidValueError, ShapeError, check_float, check_shape, parse_choice
 
 __all__ = [
     "BlockSparseMatrix",
@@ -96,9 +96,9 @@ class BlockSparseMatrix:
         check_shape(self.cols, "E", "cols", dims)
         check_float(self.diag, "diag")
         if self.off.dtype != self.diag.dtype:
-            raise ShapeError(f"off: expected dtype {self.diag.dtype} like diag, got {self.off.dtype}")
+            raise DTypeError(f"off: expected dtype {self.diag.dtype} like diag, got {self.off.dtype}")
         if self.rows.dtype != torch.int64 or self.cols.dtype != torch.int64:
-            raise ShapeError(f"rows/cols: expected int64, got {self.rows.dtype}/{self.cols.dtype}")
+            raise DTypeError(f"rows/cols: expected int64, got {self.rows.dtype}/{self.cols.dtype}")
 
     @property
     def num_nodes(self) -> int:
@@ -471,7 +471,7 @@ def analyze(
     if rows_np.shape != cols_np.shape or rows_np.ndim != 1:
         raise ShapeError(f"rows/cols: expected two (E,) arrays, got {rows_np.shape} and {cols_np.shape}")
     if rows_np.size and (min(rows_np.min(), cols_np.min()) < 0 or max(rows_np.max(), cols_np.max()) >= num_nodes):
-        raise ShapeError(f"rows/cols: block indices must lie in [0, {num_nodes})")
+        raise InvalidValueError(f"rows/cols: block indices must lie in [0, {num_nodes})")
     ordering = parse_choice(Ordering, ordering, "ordering")
     if leaf_size < 1:
         raise ConfigError(f"leaf_size: expected >= 1 nodes, got {leaf_size}")
@@ -877,7 +877,7 @@ def solve_block_sparse(
     if fixed is not None:
         check_shape(fixed, f"{matrix.num_nodes}", "fixed")
         if fixed.dtype != torch.bool:
-            raise ShapeError(f"fixed: expected a bool mask, got {fixed.dtype}")
+            raise DTypeError(f"fixed: expected a bool mask, got {fixed.dtype}")
     method = SolverMethod.parse(method)
     if method in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
         if symbolic is None:
