@@ -43,6 +43,7 @@ from .ortho import (
     sample_grey_rotated,
 )
 from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
+from .window import Window, apply_window, kcc_window
 
 __all__ = [
     "ChannelNorm",
@@ -57,6 +58,8 @@ __all__ = [
     "Peak",
     "Subpixel",
     "TrackResult",
+    "Window",
+    "apply_window",
     "choose_resolution",
     "correlator_for",
     "depth_translation",
@@ -67,6 +70,7 @@ __all__ = [
     "kcc_predict",
     "kcc_response",
     "kcc_train",
+    "kcc_window",
     "kernel_correlation",
     "keyframe_filter",
     "keyframe_map",

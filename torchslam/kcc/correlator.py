@@ -53,6 +53,7 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
+from .window import Window
 from .peak import Peak, _argmax, _check_response, _per_item, _refine_quadratic, _wrap, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
@@ -133,6 +134,11 @@ class KCCConfig:
         channel_norm: how grey and depth become KCC channels.
         fill_holes: odd window of the hole filling of the KCC input (1 = off, the paper); see
             ``kcc_features``.
+        window: spatial window of the KCC channels of keyframe and frame (``Window``; the paper
+            uses none): tapers the static image border, which pulls shifts towards zero. It
+            halves that pull on frames a few centimetres apart but not at the distances tracking
+            reaches before a new keyframe, and did not improve trajectories, so it is off by
+            default (``torchslam.kcc.window``).
         depth_median_center: select well-matched depths around their median instead of around
             0 (beyond the paper; see ``depth_translation``).
         depth_statistic: ``t_z`` as the ``"mean"`` (the paper) or ``"median"`` of the
@@ -158,6 +164,7 @@ class KCCConfig:
     subpixel_iterations: int = 5
     channel_norm: ChannelNorm = ChannelNorm.STANDARDIZE
     fill_holes: int = 3
+    window: Window = Window.NONE
     depth_median_center: bool = False
     depth_statistic: DepthStatistic = DepthStatistic.MEAN
     soft_argmax: bool = False
@@ -173,6 +180,7 @@ class KCCConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "subpixel", parse_choice(Subpixel, self.subpixel, "subpixel"))
         object.__setattr__(self, "channel_norm", parse_choice(ChannelNorm, self.channel_norm, "channel_norm"))
+        object.__setattr__(self, "window", parse_choice(Window, self.window, "window"))
         object.__setattr__(self, "depth_statistic", parse_choice(DepthStatistic, self.depth_statistic, "depth_statistic"))
         check_limits(self)
         if not self.T_M > self.T_K:

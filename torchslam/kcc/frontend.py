@@ -3,7 +3,7 @@
 Two recipes live here and nowhere else:
 
 - the keyframe recipe (``keyframe_filter``): a keyframe's fused orthographic map becomes KCC
-  channels (``kcc_features``) and a trained filter (``kcc_train``);
+  channels (``kcc_features``, windowed by ``apply_window``) and a trained filter (``kcc_train``);
 - the tracking step (``track_step``): a frame's cloud is projected in the keyframe's attitude at
   the keyframe's resolution, matched against the filter (``kcc_predict``) and its depth shift
   taken from the well-matched pixels (``depth_translation``), NI-SLAM Eq. (4)-(21).
@@ -22,6 +22,7 @@ from torch import Tensor
 from .correlator import KCCConfig, KCCFilter, KernelCorrelator, kcc_features
 from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
+from .window import apply_window
 
 __all__ = ["TrackResult", "correlator_for", "keyframe_filter", "track_step"]
 
@@ -78,7 +79,7 @@ def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | K
     corr = correlator_for(correlator)
     cfg = corr.cfg
     z = kcc_features(kf_map.grey, kf_map.depth, kf_map.valid, cfg.channel_norm, cfg.fill_holes)
-    return corr.fit(z)
+    return corr.fit(apply_window(z, cfg.window))
 
 
 def track_step(
@@ -111,7 +112,7 @@ def track_step(
     k = corr.cfg
     size = (k.ortho_height, k.ortho_width)
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.dtype), resolution, size)
-    x = kcc_features(fr.grey, fr.depth, fr.valid, k.channel_norm, k.fill_holes)
+    x = apply_window(kcc_features(fr.grey, fr.depth, fr.valid, k.channel_norm, k.fill_holes), k.window)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)

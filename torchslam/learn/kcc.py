@@ -33,6 +33,7 @@ from ..errors import ConfigError, ShapeError, check_float, check_shape
 from ..geometry import undistorted_rays
 from ..kcc import (
     KCCConfig,
+    apply_window,
     choose_resolution,
     kcc_features,
     kcc_predict,
@@ -155,8 +156,8 @@ def kcc_pairs_from_points(
     kf = orthographic_project(points_k, grey_k, valid_k, None, r, size)
     R_ki = (T_wk[:, :3, :3].transpose(1, 2) @ T_wi[:, :3, :3]).to(points_i.dtype)
     fr = orthographic_project(points_i, grey_i, valid_i, R_ki, r, size)
-    z = kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes)
-    x = kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes)
+    z = apply_window(kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes), cfg.window)
+    x = apply_window(kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes), cfg.window)
     t = content_translation(T_wk.to(torch.float64), T_wi.to(torch.float64))[:, :2].to(points_k.dtype)
     return KCCPairs(z, x, r, t)
 
