@@ -4,16 +4,20 @@ An orthographic image of a frame's cloud is drawn around the frame's own camera:
 moves, the scene content moves through the image while the image border, and the edge of the
 region the camera sees, stay where they are. A correlator that sees that static structure at
 full strength votes for zero shift, so every estimated translation is pulled towards zero. On
-real frame pairs with ground-truth attitude the estimated image shift was 4-14 % short of the
-true one in x and 10-13 % in y (``scripts/bench_window.py``); on rendered pairs 1-3 %.
+real frame pairs 2-12 frames apart, with ground-truth attitude, the estimated camera translation
+was 4 % (x) and 13 % (y) short of the true one on TUM fr1/xyz and 14 % and 10 % on 7-Scenes
+(``scripts/bench_window.py``).
 
 Multiplying both the keyframe's and the frame's channels by a smooth window that falls to zero
 at the border (the cosine window of correlation-filter trackers) weakens that pull: the content
-near the border, where the two images disagree most, enters with little weight. On pairs 2-12
-frames apart it removed most of the pull (fr1/xyz x: -4 % to +1 %, y: -12 % to -3 %; 7-Scenes
-x: -14 % to -8 %); on pairs 15-25 frames apart, the distances tracking reaches before it makes a
-new keyframe, it did not (7-Scenes y: -16 % either way), and whole runs were no more accurate, so
-``KCCConfig.window`` defaults to ``Window.NONE``. torchslam uses
+near the border, where the two images disagree most, enters with little weight. With it the
+same pairs were +1 % and 3 % short on fr1/xyz and 8 % and 9 % on 7-Scenes; pairs 15-25 frames
+apart went from 9 % / 19 % to 3 % / 6 % (fr1/xyz) and from 16 % / 14 % to 10 % / 16 %
+(7-Scenes). Whole runs were not more accurate, though: ATE on the shipped fr1/xyz frames rose
+from 1.45 to 2.43 cm (ground-truth attitude) and from 1.11 to 2.65 cm (simulated), on 7-Scenes
+from 7.33 to 7.53 and from 7.07 to 7.92 cm, and four synthetic sequences changed by under
+0.06 cm. These runs make only four to eight keyframes, so one keyframe's error can decide
+them. ``KCCConfig.window`` therefore defaults to ``Window.NONE``. torchslam uses
 the Hann window sampled at pixel centres, ``w[i] = sin²(π (i + ½) / n)`` per axis, so no row or
 column is exactly zero, and the 2-D window is the product of the two axes.
 """
