@@ -40,6 +40,8 @@ class DataConfig:
         end: one past the last frame, or None for all.
         max_gap: largest colour/depth timestamp gap accepted when associating, seconds.
         prefetch: frames decoded ahead in a background thread (0 = decode inline).
+        register_colour: register an unregistered colour image to the depth image where the
+            calibration knows the colour camera (``TUMSequence``; 7-Scenes by preset).
         synthetic: the generator's settings when ``--data synthetic``.
     """
 
@@ -48,6 +50,7 @@ class DataConfig:
     end: int | None = None
     max_gap: float = 0.02
     prefetch: int = 2
+    register_colour: bool = True
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
 
     LIMITS: ClassVar[dict[str, Limit]] = {
@@ -135,7 +138,10 @@ def load_sequence(data: str, cfg: DataConfig) -> Sequence:
     """Open ``data``: a TUM-layout folder, or ``synthetic`` for the built-in generated sequence."""
     if data == SYNTHETIC:
         return generate_sequence(cfg.synthetic)
-    return TUMSequence(data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch)
+    return TUMSequence(
+        data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch,
+        register_colour=cfg.register_colour,
+    )
 
 
 def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:

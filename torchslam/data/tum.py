@@ -57,7 +57,7 @@ from torch import Tensor
 from ..errors import ConfigError, DataFormatError
 from ..geometry import PinholeCamera
 from ..imu import AttitudeStream, ImuData, ahrs_attitude
-from .calibration import Calibration, resolve_calibration
+from .calibration import Calibration, colour_to_depth_maps, resolve_calibration
 from .frame import Frame, associate_timestamps
 from .trajectory import Trajectory, read_tum_trajectory
 
@@ -256,6 +256,10 @@ class TUMSequence:
         camera: intrinsics overriding ``calibration.txt`` and the folder-name preset.
         depth_scale: raw depth units per metre overriding ``calibration.txt`` and the preset.
         invalid_depth: raw depth values that mean "no measurement"; they become 0.
+        register_colour: resample each colour image onto the depth image's pixels where the
+            calibration gives the colour camera's own intrinsics (``calibration.colour_camera``:
+            a ``colour`` line of ``calibration.txt`` or the 7-Scenes preset); False keeps the
+            colour image as it is.
         gt_max_gap: largest spacing of the two ground-truth poses bracketing a frame across
             which its pose is interpolated, seconds.
 
@@ -265,6 +269,9 @@ class TUMSequence:
         camera: pinhole intrinsics and image size.
         depth_scale: raw depth units per metre.
         calibration_source: where ``camera`` and ``depth_scale`` came from.
+        colour_camera: the unregistered colour image's intrinsics every colour image is
+            registered with, or None (registered already, or ``register_colour=False``).
+        colour_source: where ``colour_camera`` came from, or None.
         timestamps: (N,) float64 colour timestamps of the frames, seconds.
         depth_timestamps: (N,) float64 timestamps of the paired depth images, seconds.
         rgb_paths, depth_paths: the N image files.
@@ -301,6 +308,7 @@ class TUMSequence:
         depth_scale: float | None = None,
         invalid_depth: Iterable[int] = (0, 65535),
         gt_max_gap: float = 0.2,
+        register_colour: bool = True,
     ) -> None:
         root = Path(root)
         max_gap = _check_seconds(max_gap, "max_gap", allow_zero=True)
@@ -334,6 +342,13 @@ class TUMSequence:
         self.camera = calib.camera
         self.depth_scale = float(calib.depth_scale)
         self.calibration_source = calib.source
+        if not isinstance(register_colour, bool):
+            raise ConfigError(f"register_colour: expected true or false, got {register_colour!r}")
+        # An unregistered colour image is resampled onto the depth image's pixels at decode.
+        use_colour = register_colour and calib.colour_camera is not None
+        self.colour_camera = calib.colour_camera if use_colour else None
+        self.colour_source = calib.colour_source if use_colour else None
+        self._colour_maps = colour_to_depth_maps(self.camera, self.colour_camera) if use_colour else None
 
         rgb_list, depth_list = root / RGB_LIST, root / DEPTH_LIST
         rgb_t, rgb_f, rgb_lines = _read_stamped_list(rgb_list, "timestamp filename")
@@ -550,6 +565,8 @@ class TUMSequence:
                 f"{self.rgb_paths[i]} ({self._rgb_where[i]}): colour image is {bgr.shape[1]}x{bgr.shape[0]}, "
                 f"the calibration ({self.calibration_source}) says {cam.width}x{cam.height}"
             )
+        if self._colour_maps is not None:
+            bgr = cv2.remap(bgr, *self._colour_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         raw = _read_image(self.depth_paths[i], cv2.IMREAD_UNCHANGED, self._depth_where[i])
         if raw.dtype != np.uint16 or raw.ndim != 2:
             channels = 1 if raw.ndim == 2 else raw.shape[2]
@@ -623,7 +640,8 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         (poses in groundtruth.txt, 0 without it), ``gt_frames_covered``, ``gt_coverage_fraction``,
         ``gt_frames_interpolated_across_gap`` (covered frames whose bracketing poses are more
         than 1.5 times the median ground-truth spacing apart), ``gt_largest_gap_s``,
-        ``gt_max_gap_allowed_s``; ``accelerometer_samples`` (0 without accelerometer.txt);
+        ``gt_max_gap_allowed_s``; ``colour_registered_with`` (the colour camera the colour images
+        are registered with and its source, or None); ``accelerometer_samples`` (0 without accelerometer.txt);
         ``imu_samples`` (0 without imu.txt).
 
     Raises:
@@ -649,6 +667,10 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         "association_max_gap_allowed_s": assoc["max_gap_allowed_s"],
         "intrinsics": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy},
         "intrinsics_source": seq.calibration_source,
+        "colour_registered_with": None if seq.colour_camera is None else {
+            "fx": seq.colour_camera.fx, "fy": seq.colour_camera.fy, "cx": seq.colour_camera.cx, "cy": seq.colour_camera.cy,
+            "source": seq.colour_source,
+        },
         "depth_scale": seq.depth_scale,
         "image_size": {"width": cam.width, "height": cam.height},
         "gt_poses": 0,
