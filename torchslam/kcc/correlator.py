@@ -441,8 +441,7 @@ def _fourier_tables(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Tables of the interpolant, cached per size (they depend on nothing else).
 
-    Returns the angular frequencies ``wy`` (H,) and ``wx`` (W//2+1,) concatenated, the axis (0 = y,
-    1 = x) of each of them, the (H, W//2+1)
+    Returns the angular frequencies ``wy`` (H,) and ``wx`` (W//2+1,), the (H, W//2+1)
     Gaussian-smoothing, Parseval and 1/(HW) factor, and the complex derivative weights
     ``(1, i w, -w²)`` of each axis, (3, H) and (3, W//2+1).
     """
@@ -459,8 +458,7 @@ def _fourier_tables(
         zero = torch.zeros_like(w)
         return torch.complex(torch.stack([torch.ones_like(w), zero, -w.square()]), torch.stack([zero, w, zero]))
 
-    axis = torch.cat([torch.zeros(H, dtype=torch.long, device=device), torch.ones(fx.shape[0], dtype=torch.long, device=device)])
-    tables = (torch.cat([wy, wx]), axis, damp * _half_weights(W, damp)[None, :] / (H * W), orders(wy), orders(wx))
+    tables = (wy, wx, damp * _half_weights(W, damp)[None, :] / (H * W), orders(wy), orders(wx))
     return _FOURIER_TABLES.put(key, tables)
 
 
@@ -469,17 +467,17 @@ def _refine_fourier(
 ) -> tuple[Tensor, Tensor]:
     """Newton ascent on the Gaussian-smoothed trigonometric interpolant of g around the integer peak."""
     real = g_hat.real.dtype
-    w, axis, factor, dy, dx = _fourier_tables(H, W, smoothing, real, g_hat.device)
-    unit = torch.ones_like(w)
+    wy, wx, factor, dy, dx = _fourier_tables(H, W, smoothing, real, g_hat.device)
+    unit_y, unit_x = torch.ones_like(wy), torch.ones_like(wx)
     G = g_hat * factor  # (B, H, W//2+1)
     t0 = torch.stack([row, col], dim=1).to(real)  # (B, 2) (y, x)
     t = t0
     ok = torch.ones(row.shape, dtype=torch.bool, device=row.device)
     step_norm = torch.zeros(row.shape, dtype=real, device=row.device)
     for _ in range(iterations):
-        # e^{i wy ty} (B, H) and e^{i wx tx} (B, Wr) in one call.
-        ab = torch.polar(unit, t[:, axis] * w)
-        a, b = ab[:, :H], ab[:, H:]
+        # e^{i wy ty} (B, H) and e^{i wx tx} (B, Wr).
+        a = torch.polar(unit_y, t[:, 0:1] * wy)
+        b = torch.polar(unit_x, t[:, 1:2] * wx)
         # The value and derivatives of the interpolant are separable sums
         # Re Σ_y a_y dy[m]_y Σ_x G_yx b_x dx[n]_x for derivative orders (m, n): two small
         # matrix products give all nine, of which five are used (3 x GEMV + 5 reductions before).
