@@ -123,7 +123,14 @@ def rgbd_to_points(
     # transposed view: the rotations downstream (``_rotate_planar``) then read contiguous
     # planes (a well-shaped GEMM, unlike interleaved xyz), and stacking planes is a plain copy
     # where interleaving copies element by element. The values are the same.
-    points = torch.stack([rx * z, ry * z, z], dim=1).transpose(1, 2)  # (B, H*W, 3)
+    if z.requires_grad or rx.requires_grad:
+        planes = torch.stack([rx * z, ry * z, z], dim=1)
+    else:  # the products written into their planes directly, without the intermediate copies
+        planes = z.new_empty(B, 3, H * W)
+        torch.mul(rx, z, out=planes[:, 0])
+        torch.mul(ry, z, out=planes[:, 1])
+        planes[:, 2] = z
+    points = planes.transpose(1, 2)  # (B, H*W, 3)
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 

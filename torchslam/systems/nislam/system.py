@@ -579,6 +579,8 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
         sums = rows[:, 0:H] + rows[:, 1 : H + 1] + rows[:, 2 : H + 2]  # (4, H, W)
         total, count = sums[:3], sums[3]
         new = todo & (count > 0)
+        if not bool(new.any()):
+            break  # nothing reachable is left: further rounds would not change anything
         colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
         has = has | new
     return colour, has
