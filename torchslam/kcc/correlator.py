@@ -278,15 +278,27 @@ def kcc_features(
     mode = parse_choice(ChannelNorm, mode, "mode")
     if not (isinstance(fill_holes, int) and fill_holes >= 1 and fill_holes % 2 == 1):
         raise ConfigError(f"fill_holes: expected a positive odd integer, got {fill_holes!r}")
-    x = torch.stack([grey, depth.to(grey.dtype)], dim=1)  # (B, 2, H, W)
-    m = valid[:, None].to(x.dtype)
-    if fill_holes > 1:
+    dtype = grey.dtype
+    depth = depth.to(dtype)
+    m = valid[:, None].to(dtype)  # (B, 1, H, W)
+    if fill_holes == 1:
+        x = torch.stack([grey, depth], dim=1)  # (B, 2, H, W)
+    else:
         # Ratio of box sums of x*m and of m: the mean over the valid pixels of each window.
-        sums = _box_sum(torch.cat([x * m, m], dim=1), fill_holes)  # (B, 3, H, W)
+        if torch.is_grad_enabled() and (grey.requires_grad or depth.requires_grad):
+            xm = torch.cat([grey[:, None] * m, depth[:, None] * m, m], dim=1)  # (B, 3, H, W)
+        else:  # the same products written into their channels, without the copies
+            B, H, W = grey.shape
+            xm = grey.new_empty(B, 3, H, W)
+            torch.mul(grey[:, None], m, out=xm[:, 0:1])
+            torch.mul(depth[:, None], m, out=xm[:, 1:2])
+            xm[:, 2:3] = m
+        sums = _box_sum(xm, fill_holes)  # (B, 3, H, W)
         num, den = sums[:, :2], sums[:, 2:]
         has = den > 0
-        x = where(valid[:, None], x, num / where(has, den, 1.0))
-        m = (valid[:, None] | has).to(x.dtype)
+        # x * m is x itself where valid; den counts pixels, so where(has, den, 1) is clamp_min(1).
+        x = where(valid[:, None], xm[:, :2], num / den.clamp_min(1.0))
+        m = (valid[:, None] | has).to(dtype)
     if mode is ChannelNorm.RAW:
         return x * m
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
