@@ -6,6 +6,8 @@ Three commands (one torch thread unless ``--threads``; the machine's load is pri
     python scripts/bench_speed.py run tum_fr1_xyz [--frames N] [--set '{"pixel_stride": 2}']
     # this checkout against another one (e.g. main's worktree), run alternately in subprocesses
     python scripts/bench_speed.py ab --other ../main [--rounds 3] [--sequences tum_fr1_xyz,synthetic-orbit-0]
+    # the same, frame by frame in one process: both checkouts' NISlam on the same decoded frames
+    python scripts/bench_speed.py interleave --other ../main [--sequences tum_fr1_xyz,synthetic-orbit-0]
     # pixel_stride x orthographic size: ATE and frames/s at this checkout's code
     python scripts/bench_speed.py pareto [--strides 1,2] [--sizes 360x480,300x400,240x320]
 
@@ -121,6 +123,79 @@ def ab(args) -> dict:
     return {"runs": runs, "medians": table}
 
 
+def _load_tree(path: Path) -> dict:
+    """Import ``path``'s torchslam and set its modules aside (``_use`` puts them back), so two checkouts share a process."""
+    import importlib
+
+    sys.path.insert(0, str(path))
+    try:
+        mods = {n: importlib.import_module(n) for n in
+                ("torchslam.systems.nislam", "torchslam.config", "torchslam.data.tum", "torchslam.data.synthetic")}
+    finally:
+        sys.path.pop(0)
+    tree = {k: sys.modules[k] for k in list(sys.modules) if k == "torchslam" or k.startswith("torchslam.")}
+    for k in tree:
+        del sys.modules[k]
+    return {"mods": tree, **{n.rsplit(".", 1)[-1]: m for n, m in mods.items()}}
+
+
+def _use(tree: dict) -> None:
+    """Make ``tree``'s modules the imported torchslam (type hints and lazy imports look there)."""
+    sys.modules.update(tree["mods"])
+
+
+def interleave(args) -> dict:
+    """Both checkouts' NISlam in one process on the same decoded frames, alternating frame by frame.
+
+    Decode is excluded (the frames are read first); load drift hits both alike. Reports ms per
+    frame of ``track`` and of ``finish``, the stages, and whether the trajectories are identical.
+    """
+    trees = {"before": _load_tree(Path(args.other).resolve()), "after": _load_tree(Path(__file__).resolve().parents[1])}
+    result = {}
+    for name in args.sequences.split(","):
+        systems, frames = {}, {}
+        for label, t in trees.items():
+            _use(t)
+            if name.startswith("synthetic-"):
+                _, kind, seed = name.split("-")
+                seq = t["synthetic"].generate_sequence(t["synthetic"].SyntheticConfig(frames=args.synthetic_frames, trajectory=kind, seed=int(seed)))
+                attitude = "imu"
+            else:
+                seq = t["tum"].TUMSequence(data_root() / name, end=args.frames)
+                attitude = "groundtruth"
+            frames[label] = list(seq)
+            cfg = t["config"].config_from_dict(t["nislam"].NISlamConfig, {"attitude": attitude, **json.loads(args.set)})
+            systems[label] = t["nislam"].NISlam(cfg)
+            systems[label].start(seq)
+        track = {label: 0.0 for label in trees}
+        for k in range(len(frames["after"])):
+            for label, t in trees.items():
+                _use(t)
+                t0 = time.perf_counter()
+                systems[label].track(frames[label][k])
+                track[label] += time.perf_counter() - t0
+        outputs, finish = {}, {}
+        for label, t in trees.items():
+            _use(t)
+            t0 = time.perf_counter()
+            outputs[label] = systems[label].finish()
+            finish[label] = time.perf_counter() - t0
+        n = len(frames["after"])
+        same = torch.equal(outputs["before"].T_wc, outputs["after"].T_wc)
+        row = {label: {"track_ms_per_frame": 1000 * track[label] / n, "finish_ms": 1000 * finish[label],
+                       "stage_ms_per_frame": {k: v / n for k, v in systems[label].stage_ms.items()}} for label in trees}
+        row.update(frames=n, identical_trajectories=same, load=load_average())
+        result[name] = row
+        b, a = row["before"], row["after"]
+        print(f"{name}: {n} frames, identical trajectories: {same}, load {row['load']}")
+        print(f"  track: {b['track_ms_per_frame']:.2f} -> {a['track_ms_per_frame']:.2f} ms/frame "
+              f"({b['track_ms_per_frame'] / a['track_ms_per_frame']:.2f}x); finish {b['finish_ms']:.0f} -> {a['finish_ms']:.0f} ms")
+        for k in STAGES:
+            sb, sa = b["stage_ms_per_frame"].get(k, 0.0), a["stage_ms_per_frame"].get(k, 0.0)
+            print(f"  {k:12s} {sb:7.2f} -> {sa:7.2f} ms/frame" + (f"  ({sb / sa:.2f}x)" if sa > 0 else ""))
+    return result
+
+
 def pareto(args) -> list[dict]:
     """ATE and frames/s for every (pixel_stride, orthographic size) at this checkout's code."""
     rows = []
@@ -151,7 +226,7 @@ def pareto(args) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     sub = ap.add_subparsers(dest="command", required=True)
-    for cmd in ("run", "ab", "pareto"):
+    for cmd in ("run", "ab", "interleave", "pareto"):
         p = sub.add_parser(cmd)
         p.add_argument("--threads", type=int, default=1)
         p.add_argument("--frames", type=int, default=None, help="only the first N frames of each sequence")
@@ -162,10 +237,11 @@ def main() -> None:
             p.add_argument("--set", default="{}", help="NISlamConfig overrides as JSON")
         else:
             p.add_argument("--sequences", default="tum_fr1_xyz,7scenes_redkitchen,synthetic-orbit-0,synthetic-orbit-1,synthetic-orbit-2")
-        if cmd == "ab":
+        if cmd in ("ab", "interleave"):
             p.add_argument("--other", required=True, help="the checkout to compare against (its repository root)")
+            p.add_argument("--set", default="{}", help="NISlamConfig overrides as JSON")
+        if cmd == "ab":
             p.add_argument("--rounds", type=int, default=3)
-            p.add_argument("--set", default="{}")
         if cmd == "pareto":
             p.add_argument("--strides", default="1,2")
             p.add_argument("--sizes", default="360x480,300x400,240x320")
@@ -177,7 +253,7 @@ def main() -> None:
         print(json.dumps(result))
     else:
         print(f"load average (1, 5, 15 min): {load_average()}  threads: {args.threads}  {time.strftime('%H:%M:%S')}")
-        result = ab(args) if args.command == "ab" else pareto(args)
+        result = {"ab": ab, "interleave": interleave, "pareto": pareto}[args.command](args)
         print(f"load average at the end: {load_average()}")
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

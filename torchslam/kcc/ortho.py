@@ -310,10 +310,7 @@ def sample_grey_rotated(
     else:
         check_shape(rays, f"{H * W} 2", "rays")
         check_float(rays, "rays")
-        # Rays at the (fractional) node pixels, bilinear in the per-pixel ray image.
-        img = rays.to(dtype).T.reshape(1, 2, H, W)
-        gv, gu = torch.meshgrid(2 * vn / max(H - 1, 1) - 1, 2 * un / max(W - 1, 1) - 1, indexing="ij")
-        node = F.grid_sample(img, torch.stack([gu, gv], dim=-1)[None], mode="bilinear", align_corners=True)[0]
+        node = _node_rays(rays, dtype, H, W, vn, un)
         rx, ry = node[0].expand(B, hc, wc), node[1].expand(B, hc, wc)
     # The nodes' rays as points at unit depth: a pure rotation moves the whole ray alike.
     nodes = torch.stack([rx.reshape(B, -1), ry.reshape(B, -1), torch.ones_like(rx).reshape(B, -1)], dim=-1)
@@ -336,6 +333,28 @@ def sample_grey_rotated(
         g, v = sample_grey(rgb[idx], points[idx], valid[idx], rotation[idx], intr[idx], grey_image[idx], distortion)
         grey, ok = grey.index_copy(0, idx, g.to(grey.dtype)), ok.index_copy(0, idx, v)
     return grey, ok
+
+
+# (rays tensor, (2, hc, wc) node rays) per (rays identity and version, dtype, node lattice).
+_NODE_RAYS: FifoCache[tuple[Tensor, Tensor]] = FifoCache(8)
+
+
+def _node_rays(rays: Tensor, dtype: torch.dtype, H: int, W: int, vn: Tensor, un: Tensor) -> Tensor:
+    """(2, hc, wc) rays at the (fractional) node pixels ``vn`` x ``un``, bilinear in the per-pixel ray image.
+
+    They depend on the sequence's rays alone, so they are kept per rays tensor (``cache.tensor_key``:
+    its identity and version, never its values), as ``_pixel_rays`` keeps the pinhole factors.
+    """
+
+    def compute() -> Tensor:
+        img = rays.to(dtype).T.reshape(1, 2, H, W)
+        gv, gu = torch.meshgrid(2 * vn / max(H - 1, 1) - 1, 2 * un / max(W - 1, 1) - 1, indexing="ij")
+        return F.grid_sample(img, torch.stack([gu, gv], dim=-1)[None], mode="bilinear", align_corners=True)[0]
+
+    if rays.requires_grad:
+        return compute()
+    key = (H, W, len(vn), len(un), dtype, *tensor_key(rays))
+    return _NODE_RAYS.get_or_compute(key, lambda: (rays, compute()))[1]
 
 
 # The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come
