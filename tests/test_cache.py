@@ -100,3 +100,18 @@ def test_fourier_tables_are_cached_per_size():
     a = correlator._fourier_tables(8, 12, 0.5, torch.float64, "cpu")
     assert correlator._fourier_tables(8, 12, 0.5, torch.float64, "cpu") is a
     assert correlator._fourier_tables(8, 12, 0.25, torch.float64, "cpu") is not a
+
+
+def test_node_rays_are_cached_per_rays_tensor_and_follow_in_place_changes():
+    from torchslam.kcc import ortho
+
+    H, W = 6, 8
+    rays = torch.rand(H * W, 2, dtype=torch.float64)
+    vn, un = torch.linspace(0, H - 1, 3, dtype=torch.float64), torch.linspace(0, W - 1, 4, dtype=torch.float64)
+    a = ortho._node_rays(rays, torch.float64, H, W, vn, un)
+    assert a.shape == (2, 3, 4) and ortho._node_rays(rays, torch.float64, H, W, vn, un) is a
+    # the corner nodes are the corner pixels' rays
+    assert torch.allclose(a[:, 0, 0], rays[0]) and torch.allclose(a[:, -1, -1], rays[-1])
+    rays.mul_(2)  # a new version: recomputed
+    b = ortho._node_rays(rays, torch.float64, H, W, vn, un)
+    assert b is not a and torch.allclose(b, 2 * a)

@@ -252,3 +252,21 @@ def test_fusion_and_depth_translation_reject_bad_input(kf):
         fuse_keyframe(m, kf, s, torch.zeros(1), kf.valid, torch.ones(2))
     with pytest.raises(ShapeError, match="image"):
         shift_image(torch.zeros(4, 4), torch.zeros(1, 2))
+
+
+def test_centred_medians_equal_two_masked_medians():
+    """The single-compaction medians of ``median_center`` + ``statistic="median"`` equal the two-step ones (ties, empty sets)."""
+    from torchslam.kcc.fusion import _centred_medians, _masked_lower_median
+
+    gen = seeded(5)
+    for trial in range(6):
+        diff = (torch.randn(1, 20, 30, generator=gen, dtype=torch.float64) * 0.1).round(decimals=2)  # many ties
+        if trial == 1:
+            diff[0, :, :15] += 0.5  # a second mode far from the median: matched is a strict subset
+        cand = torch.rand(1, 20, 30, generator=gen) > (0.3 if trial != 2 else 1.0)  # trial 2: no candidate
+        T_d = 0.05 if trial != 3 else 1e-9  # trial 3: only exact ties with the centre match
+        center, t_z, matched = _centred_medians(diff, cand, T_d)
+        ref_center = _masked_lower_median(diff, cand)
+        ref_matched = cand & ((diff - ref_center[:, None, None]).abs() < T_d)
+        assert torch.equal(center, ref_center) and torch.equal(matched, ref_matched)
+        assert torch.equal(t_z, _masked_lower_median(diff, ref_matched))

@@ -108,6 +108,27 @@ def test_zbuffer_equals_per_point_loop_with_rotation_and_center(dtype):
         torch.testing.assert_close(one.depth[0], out.depth[b], **tol)
 
 
+def test_colour_is_rendered_with_the_grey_winners():
+    """``colour`` channels take the same z-buffer winners as grey: each channel equals a grey projection of it."""
+    gen = seeded(3)
+    B, N, H, W = 2, 500, 6, 7
+    pts = torch.randn(B, N, 3, generator=gen) * 0.4
+    pts[..., 2] += 2.0
+    pts = (pts * 16).round() / 16  # many exact z ties
+    valid = torch.rand(B, N, generator=gen) > 0.2
+    colour = torch.rand(B, 3, N, generator=gen)
+    r = torch.tensor([0.125, 0.25])
+    grey = colour.mean(dim=1)
+    out = orthographic_project(pts, grey, valid, None, r, (H, W), colour=colour)
+    assert out.colour.shape == (B, 3, H, W)
+    for c in range(3):
+        ref = orthographic_project(pts, colour[:, c], valid, None, r, (H, W))
+        assert torch.equal(out.colour[:, c], ref.grey) and torch.equal(out.valid, ref.valid)
+    assert orthographic_project(pts, grey, valid, None, r, (H, W)).colour is None
+    with pytest.raises(ShapeError, match="colour"):
+        orthographic_project(pts, grey, valid, None, r, (H, W), colour=colour[:, :, :-1])
+
+
 def test_projection_is_differentiable_in_grey_and_depth_of_the_winners():
     gen = seeded(2)
     pts = torch.rand(1, 300, 3, generator=gen, dtype=torch.float64) * 2 - 1

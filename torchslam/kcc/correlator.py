@@ -278,15 +278,27 @@ def kcc_features(
     mode = parse_choice(ChannelNorm, mode, "mode")
     if not (isinstance(fill_holes, int) and fill_holes >= 1 and fill_holes % 2 == 1):
         raise ConfigError(f"fill_holes: expected a positive odd integer, got {fill_holes!r}")
-    x = torch.stack([grey, depth.to(grey.dtype)], dim=1)  # (B, 2, H, W)
-    m = valid[:, None].to(x.dtype)
-    if fill_holes > 1:
+    dtype = grey.dtype
+    depth = depth.to(dtype)
+    m = valid[:, None].to(dtype)  # (B, 1, H, W)
+    if fill_holes == 1:
+        x = torch.stack([grey, depth], dim=1)  # (B, 2, H, W)
+    else:
         # Ratio of box sums of x*m and of m: the mean over the valid pixels of each window.
-        sums = _box_sum(torch.cat([x * m, m], dim=1), fill_holes)  # (B, 3, H, W)
+        if torch.is_grad_enabled() and (grey.requires_grad or depth.requires_grad):
+            xm = torch.cat([grey[:, None] * m, depth[:, None] * m, m], dim=1)  # (B, 3, H, W)
+        else:  # the same products written into their channels, without the copies
+            B, H, W = grey.shape
+            xm = grey.new_empty(B, 3, H, W)
+            torch.mul(grey[:, None], m, out=xm[:, 0:1])
+            torch.mul(depth[:, None], m, out=xm[:, 1:2])
+            xm[:, 2:3] = m
+        sums = _box_sum(xm, fill_holes)  # (B, 3, H, W)
         num, den = sums[:, :2], sums[:, 2:]
         has = den > 0
-        x = where(valid[:, None], x, num / where(has, den, 1.0))
-        m = (valid[:, None] | has).to(x.dtype)
+        # x * m is x itself where valid; den counts pixels, so where(has, den, 1) is clamp_min(1).
+        x = where(valid[:, None], xm[:, :2], num / den.clamp_min(1.0))
+        m = (valid[:, None] | has).to(dtype)
     if mode is ChannelNorm.RAW:
         return x * m
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
@@ -441,8 +453,7 @@ def _fourier_tables(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Tables of the interpolant, cached per size (they depend on nothing else).
 
-    Returns the angular frequencies ``wy`` (H,) and ``wx`` (W//2+1,) concatenated, the axis (0 = y,
-    1 = x) of each of them, the (H, W//2+1)
+    Returns the angular frequencies ``wy`` (H,) and ``wx`` (W//2+1,), the (H, W//2+1)
     Gaussian-smoothing, Parseval and 1/(HW) factor, and the complex derivative weights
     ``(1, i w, -w²)`` of each axis, (3, H) and (3, W//2+1).
     """
@@ -459,8 +470,7 @@ def _fourier_tables(
         zero = torch.zeros_like(w)
         return torch.complex(torch.stack([torch.ones_like(w), zero, -w.square()]), torch.stack([zero, w, zero]))
 
-    axis = torch.cat([torch.zeros(H, dtype=torch.long, device=device), torch.ones(fx.shape[0], dtype=torch.long, device=device)])
-    tables = (torch.cat([wy, wx]), axis, damp * _half_weights(W, damp)[None, :] / (H * W), orders(wy), orders(wx))
+    tables = (wy, wx, damp * _half_weights(W, damp)[None, :] / (H * W), orders(wy), orders(wx))
     return _FOURIER_TABLES.put(key, tables)
 
 
@@ -469,17 +479,17 @@ def _refine_fourier(
 ) -> tuple[Tensor, Tensor]:
     """Newton ascent on the Gaussian-smoothed trigonometric interpolant of g around the integer peak."""
     real = g_hat.real.dtype
-    w, axis, factor, dy, dx = _fourier_tables(H, W, smoothing, real, g_hat.device)
-    unit = torch.ones_like(w)
+    wy, wx, factor, dy, dx = _fourier_tables(H, W, smoothing, real, g_hat.device)
+    unit_y, unit_x = torch.ones_like(wy), torch.ones_like(wx)
     G = g_hat * factor  # (B, H, W//2+1)
     t0 = torch.stack([row, col], dim=1).to(real)  # (B, 2) (y, x)
     t = t0
     ok = torch.ones(row.shape, dtype=torch.bool, device=row.device)
     step_norm = torch.zeros(row.shape, dtype=real, device=row.device)
     for _ in range(iterations):
-        # e^{i wy ty} (B, H) and e^{i wx tx} (B, Wr) in one call.
-        ab = torch.polar(unit, t[:, axis] * w)
-        a, b = ab[:, :H], ab[:, H:]
+        # e^{i wy ty} (B, H) and e^{i wx tx} (B, Wr).
+        a = torch.polar(unit_y, t[:, 0:1] * wy)
+        b = torch.polar(unit_x, t[:, 1:2] * wx)
         # The value and derivatives of the interpolant are separable sums
         # Re Σ_y a_y dy[m]_y Σ_x G_yx b_x dx[n]_x for derivative orders (m, n): two small
         # matrix products give all nine, of which five are used (3 x GEMV + 5 reductions before).

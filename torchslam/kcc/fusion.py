@@ -140,6 +140,39 @@ def _masked_lower_median(values: Tensor, mask: Tensor) -> Tensor:
     return torch.nan_to_num(flat.nanmedian(dim=1).values, nan=0.0)
 
 
+def _centred_medians(diff: Tensor, candidate: Tensor, T_d: float) -> tuple[Tensor, Tensor, Tensor]:
+    """One item's centre ``c`` (lower median of ``diff`` over ``candidate``), the lower median of
+    ``diff`` over ``matched = candidate & (|diff - c| < T_d)``, and ``matched``; as
+    ``_masked_lower_median`` twice, from one compaction.
+
+    ``fl(d - c)`` is monotonic in ``d``, so the matched values are a contiguous run of the sorted
+    candidates: the ``L`` candidates with ``d - c <= -T_d`` come before it. The median of the
+    ``m`` matched values is therefore the ``(L + (m + 1) // 2)``-th smallest candidate, picked by
+    a second ``kthvalue`` over the same compacted values.
+
+    Args:
+        diff: (1, H, W) depth differences.
+        candidate: (1, H, W) bool.
+        T_d: depth threshold.
+
+    Returns:
+        ((1,) centre, (1,) median of the matched differences, (1, H, W) bool matched); both
+        medians are 0 where their set is empty.
+    """
+    sel = diff.reshape(-1)[candidate.reshape(-1)]
+    zero = diff.new_zeros(1)
+    if sel.numel() == 0:
+        return zero, zero, candidate.clone()
+    center = sel.kthvalue((sel.numel() + 1) // 2).values.reshape(1)
+    matched = candidate & ((diff - center).abs() < T_d)
+    off = sel - center
+    below = int((off <= -T_d).sum())
+    m = int(((off > -T_d) & (off < T_d)).sum())
+    if m == 0:
+        return center, zero, matched
+    return center, sel.kthvalue(below + (m + 1) // 2).values.reshape(1), matched
+
+
 class DepthStatistic(str, enum.Enum):
     """How ``depth_translation`` reduces the well-matched depth differences to ``t_z``."""
 
@@ -192,17 +225,25 @@ def depth_translation(
     xg, xd, xv = _aligned_frame(frame, shift)
     diff = xd - zd.to(xd.dtype)
     candidate = xv & zv & ((xg - zg.to(xg.dtype)).abs() < T_c)
-    center = diff.new_zeros(diff.shape[0])
-    if median_center:
-        center = _masked_lower_median(diff, candidate)  # (B,); 0 where no candidate
-    matched = candidate & ((diff - center[:, None, None]).abs() < T_d)
-    m = matched.to(diff.dtype)
-    count = matched.sum(dim=(1, 2))
-    n = count.to(diff.dtype).clamp_min(1.0)
-    if statistic is DepthStatistic.MEDIAN:
-        t_z = _masked_lower_median(diff, matched)
+    B = diff.shape[0]
+    if median_center and statistic is DepthStatistic.MEDIAN and B == 1:
+        # Both medians from one compaction of the candidates (see ``_centred_medians``).
+        center, t_z, matched = _centred_medians(diff, candidate, T_d)
+        m = matched.to(diff.dtype)
+        count = matched.sum(dim=(1, 2))
+        n = count.to(diff.dtype).clamp_min(1.0)
     else:
-        t_z = (diff * m).sum(dim=(1, 2)) / n
+        center = diff.new_zeros(B)
+        if median_center:
+            center = _masked_lower_median(diff, candidate)  # (B,); 0 where no candidate
+        matched = candidate & ((diff - center[:, None, None]).abs() < T_d)
+        m = matched.to(diff.dtype)
+        count = matched.sum(dim=(1, 2))
+        n = count.to(diff.dtype).clamp_min(1.0)
+        if statistic is DepthStatistic.MEDIAN:
+            t_z = _masked_lower_median(diff, matched)
+        else:
+            t_z = (diff * m).sum(dim=(1, 2)) / n
     var = ((diff - t_z[:, None, None]).square() * m).sum(dim=(1, 2)) / n
     ok = count > 0
     var = torch.where(ok, var, torch.full_like(var, math.inf))

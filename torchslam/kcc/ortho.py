@@ -54,6 +54,8 @@ class OrthoImages:
         valid: (B, H, W) bool, True where at least one point fell into the pixel.
         resolution: (B,) metres per pixel used for the projection.
         center: (B, 2) image centre offset ``(c_x, c_y)`` in metres.
+        colour: (B, C, H, W) further per-point values (e.g. RGB) of the same nearest points, 0
+            where invalid; None unless ``orthographic_project`` was given ``colour``.
     """
 
     grey: Tensor
@@ -61,6 +63,7 @@ class OrthoImages:
     valid: Tensor
     resolution: Tensor
     center: Tensor
+    colour: Tensor | None = None
 
 
 def grey_from_rgb(rgb: Tensor) -> Tensor:
@@ -120,7 +123,14 @@ def rgbd_to_points(
     # transposed view: the rotations downstream (``_rotate_planar``) then read contiguous
     # planes (a well-shaped GEMM, unlike interleaved xyz), and stacking planes is a plain copy
     # where interleaving copies element by element. The values are the same.
-    points = torch.stack([rx * z, ry * z, z], dim=1).transpose(1, 2)  # (B, H*W, 3)
+    if z.requires_grad or rx.requires_grad:
+        planes = torch.stack([rx * z, ry * z, z], dim=1)
+    else:  # the products written into their planes directly, without the intermediate copies
+        planes = z.new_empty(B, 3, H * W)
+        torch.mul(rx, z, out=planes[:, 0])
+        torch.mul(ry, z, out=planes[:, 1])
+        planes[:, 2] = z
+    points = planes.transpose(1, 2)  # (B, H*W, 3)
     return points, grey_from_rgb(rgb).to(points.dtype), valid
 
 
@@ -300,10 +310,7 @@ def sample_grey_rotated(
     else:
         check_shape(rays, f"{H * W} 2", "rays")
         check_float(rays, "rays")
-        # Rays at the (fractional) node pixels, bilinear in the per-pixel ray image.
-        img = rays.to(dtype).T.reshape(1, 2, H, W)
-        gv, gu = torch.meshgrid(2 * vn / max(H - 1, 1) - 1, 2 * un / max(W - 1, 1) - 1, indexing="ij")
-        node = F.grid_sample(img, torch.stack([gu, gv], dim=-1)[None], mode="bilinear", align_corners=True)[0]
+        node = _node_rays(rays, dtype, H, W, vn, un)
         rx, ry = node[0].expand(B, hc, wc), node[1].expand(B, hc, wc)
     # The nodes' rays as points at unit depth: a pure rotation moves the whole ray alike.
     nodes = torch.stack([rx.reshape(B, -1), ry.reshape(B, -1), torch.ones_like(rx).reshape(B, -1)], dim=-1)
@@ -326,6 +333,28 @@ def sample_grey_rotated(
         g, v = sample_grey(rgb[idx], points[idx], valid[idx], rotation[idx], intr[idx], grey_image[idx], distortion)
         grey, ok = grey.index_copy(0, idx, g.to(grey.dtype)), ok.index_copy(0, idx, v)
     return grey, ok
+
+
+# (rays tensor, (2, hc, wc) node rays) per (rays identity and version, dtype, node lattice).
+_NODE_RAYS: FifoCache[tuple[Tensor, Tensor]] = FifoCache(8)
+
+
+def _node_rays(rays: Tensor, dtype: torch.dtype, H: int, W: int, vn: Tensor, un: Tensor) -> Tensor:
+    """(2, hc, wc) rays at the (fractional) node pixels ``vn`` x ``un``, bilinear in the per-pixel ray image.
+
+    They depend on the sequence's rays alone, so they are kept per rays tensor (``cache.tensor_key``:
+    its identity and version, never its values), as ``_pixel_rays`` keeps the pinhole factors.
+    """
+
+    def compute() -> Tensor:
+        img = rays.to(dtype).T.reshape(1, 2, H, W)
+        gv, gu = torch.meshgrid(2 * vn / max(H - 1, 1) - 1, 2 * un / max(W - 1, 1) - 1, indexing="ij")
+        return F.grid_sample(img, torch.stack([gu, gv], dim=-1)[None], mode="bilinear", align_corners=True)[0]
+
+    if rays.requires_grad:
+        return compute()
+    key = (H, W, len(vn), len(un), dtype, *tensor_key(rays))
+    return _NODE_RAYS.get_or_compute(key, lambda: (rays, compute()))[1]
 
 
 # The projections below keep one coordinate per tensor ((B, N) planes): the rotated points come
@@ -473,6 +502,13 @@ def choose_resolution(
 _POINT_IDS: FifoCache[Tensor] = FifoCache(8)
 
 
+def _below(W: int, H: int, dtype: torch.dtype, device) -> tuple[float, float]:
+    """The largest values of ``dtype`` below ``W`` and ``H``, as Python floats (exact in ``dtype``)."""
+    top = torch.tensor([float(W), float(H)], dtype=dtype)
+    w_max, h_max = torch.nextafter(top, torch.zeros_like(top)).tolist()
+    return w_max, h_max
+
+
 def _point_ids(n: int, device) -> Tensor:
     """``arange(n)`` as int64, kept per (n, device): the z-buffer keys need it for every frame."""
     return _POINT_IDS.get_or_compute((n, torch.device(device)), lambda: torch.arange(n, device=device))
@@ -486,6 +522,7 @@ def orthographic_project(
     resolution: Tensor,
     size: tuple[int, int] = (360, 480),
     center: Tensor | None = None,
+    colour: Tensor | None = None,
 ) -> OrthoImages:
     """Render attitude-aligned points into orthographic grey and depth images (NI-SLAM Eq. (4), (6), (7)).
 
@@ -510,9 +547,12 @@ def orthographic_project(
             resolution give an empty (all-invalid) image.
         size: ``(H, W)`` of the output images in pixels.
         center: (B, 2) image centre offset ``(c_x, c_y)`` in metres; ``None`` = zero.
+        colour: (B, C, N) further values per point (e.g. the RGB the grey came from), rendered
+            with the same z-buffer winners into ``OrthoImages.colour``; ``None``: none.
 
     Returns:
-        OrthoImages with (B, H, W) grey, depth, valid in the dtype of ``points``.
+        OrthoImages with (B, H, W) grey, depth, valid (and (B, C, H, W) colour) in the dtype of
+        ``points``.
     """
     dims: dict[str, int] = {}
     _check_points(points, valid, dims)
@@ -520,6 +560,9 @@ def orthographic_project(
     check_float(grey, "grey")
     check_shape(resolution, "B", "resolution", dims)
     check_float(resolution, "resolution")
+    if colour is not None:
+        check_shape(colour, "B C N", "colour", dims)
+        check_float(colour, "colour")
     H, W = _check_size(size)
     rotation, center = _rotation_and_center(points, rotation, center, dims)
     B, N, _ = points.shape
@@ -532,18 +575,21 @@ def orthographic_project(
     inv_r = 1.0 / r
     u = torch.addcmul(W / 2 - center[:, 0:1] * inv_r, x, inv_r)  # (B, N) = (x - c_x) / r + W / 2
     v = torch.addcmul(H / 2 - center[:, 1:2] * inv_r, y, inv_r)
-    # Comparisons on the float coordinates first: NaN/inf (bad r, bad points) fail them.
+    # 0 <= u < W is u == clamp(u, 0, W-) with W- the largest float below W, and NaN/inf (bad r,
+    # bad points) fail the comparison: one clamp and one comparison per axis, and the clamped
+    # coordinate is the one the pixel index truncates (to W - 1 at most, as a clamp to W - 1 would).
+    w_max, h_max = _below(W, H, q.dtype, q.device)
+    uc = u.clamp(min=0, max=w_max)
+    vc = v.clamp(min=0, max=h_max)
     inside = valid & (r > 0)
-    inside &= u >= 0
-    inside &= u < W
-    inside &= v >= 0
-    inside &= v < H
+    inside &= uc == u
+    inside &= vc == v
     inside &= z.abs() < math.inf  # isfinite(z) (NaN fails the comparison), in a third of the time
-    # Truncation is floor for the non-negative coordinates that matter; the others (including
+    # Truncation is floor for the non-negative clamped coordinates; the points outside (including
     # NaN) are replaced by the trash slot below, whatever integer they became. Pixel indices fit
     # int32 (checked above); only the scatter needs them as int64.
     idt = torch.int32 if B * HW < 2**31 else torch.int64
-    pix = v.clamp(0, H - 1).to(idt) * W + u.clamp(0, W - 1).to(idt)
+    pix = vc.to(idt).mul_(W).add_(uc.to(idt))
     if B > 1:
         pix += torch.arange(0, B * HW, HW, dtype=idt, device=q.device)[:, None]
     trash = B * HW  # one extra slot collects every point that is not rendered
@@ -561,10 +607,16 @@ def orthographic_project(
     src = best.bitwise_and_(0xFFFFFFFF).clamp_(max=B * N - 1)
     out_grey = where(pix_valid, grey.to(q.dtype).flatten().index_select(0, src), 0.0)
     out_depth = where(pix_valid, z.flatten().index_select(0, src), 0.0)
+    out_colour = None
+    if colour is not None:
+        C = colour.shape[1]
+        picked = colour.to(q.dtype).transpose(0, 1).reshape(C, B * N).index_select(1, src)  # (C, B*H*W)
+        out_colour = where(pix_valid, picked, 0.0).view(C, B, H, W).transpose(0, 1)
     return OrthoImages(
         grey=out_grey.view(B, H, W),
         depth=out_depth.view(B, H, W),
         valid=pix_valid.view(B, H, W),
         resolution=resolution.to(q.dtype),
         center=center,
+        colour=out_colour,
     )

@@ -346,16 +346,13 @@ class NISlam:
         points, grey, valid = src.cloud.points, src.cloud.grey, src.cloud.valid
         size = (k.ortho_height, k.ortho_width)
         r = choose_resolution(points, valid, size, k.coverage, k.sample_step)
-        ortho = orthographic_project(points, grey, valid, None, r, size)
-        kf = _Keyframe(frame.index, frame.timestamp, T_wi, src.input.R_att[0], r, keyframe_map(ortho), None, src.cloud)
-        # The keyframe's colour in the same orthographic pixels (same points, same z-buffer
-        # winners), for the colours of map.ply; the tracking itself works on grey.
+        # The keyframe's colour rendered with its grey (same z-buffer winners), for the colours
+        # of map.ply; the tracking itself works on grey.
         n = points.shape[1]
-        colour = orthographic_project(
-            points.expand(3, n, 3), rgb[0].reshape(3, n).to(points.dtype), valid.expand(3, n), None, r.expand(3), size
-        )
-        kf.colour = (colour.grey.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
-        kf.colour_valid = colour.valid[0].cpu()
+        ortho = orthographic_project(points, grey, valid, None, r, size, colour=rgb.reshape(1, 3, n))
+        kf = _Keyframe(frame.index, frame.timestamp, T_wi, src.input.R_att[0], r, keyframe_map(ortho), None, src.cloud)
+        kf.colour = (ortho.colour[0].clamp(0, 1) * 255).round().to(torch.uint8).cpu()
+        kf.colour_valid = ortho.valid[0].cpu()
         if previous is not None:
             # The previous keyframe's filter (possibly a row of a batch, ``track_frames``) is no
             # longer needed for tracking.
@@ -570,14 +567,20 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
     import torch.nn.functional as F
 
     colour, has = colour.clone(), has.clone()
+    H, W = has.shape
     for _ in range(rounds):
         todo = want & ~has
         if not bool(todo.any()):
             break
-        w = has.to(colour.dtype)[None, None]
-        total = F.avg_pool2d((colour * w[0])[None], 3, stride=1, padding=1)[0]
-        count = F.avg_pool2d(w, 3, stride=1, padding=1)[0, 0]
+        w = has.to(colour.dtype)[None]
+        # 3x3 sums of the coloured pixels' colours and of their count (zero outside), separable.
+        x = F.pad(torch.cat([colour * w, w]), (1, 1, 1, 1))  # (4, H + 2, W + 2)
+        rows = x[:, :, 0:W] + x[:, :, 1 : W + 1] + x[:, :, 2 : W + 2]
+        sums = rows[:, 0:H] + rows[:, 1 : H + 1] + rows[:, 2 : H + 2]  # (4, H, W)
+        total, count = sums[:3], sums[3]
         new = todo & (count > 0)
+        if not bool(new.any()):
+            break  # nothing reachable is left: further rounds would not change anything
         colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
         has = has | new
     return colour, has
