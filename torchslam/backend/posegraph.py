@@ -190,8 +190,8 @@ class EdgeTest:
     """Outcome of :func:`edge_consistency`.
 
     Attributes:
-        chi2_increase: () float64 ``chi^2`` of the optimised graph with the new edge minus that
-            of the graph without it at the given poses (their optimum).
+        chi2_increase: () ``chi^2`` of the optimised graph with the new edge minus that of the
+            optimised graph without it.
         dof: degrees of freedom of the new edge (rank of its information matrix).
         threshold: the ``chi^2`` quantile the increase is compared with.
         consistent: ``chi2_increase <= threshold`` and the optimisation stayed finite.
@@ -221,16 +221,16 @@ def edge_consistency(
 ) -> EdgeTest:
     """Test a new edge (a loop closure) for consistency with the graph: the chi-square increase.
 
-    ``T_wc`` must be the optimum of the graph without the new edge (a chain of odometry edges
-    is at its optimum as composed). Then, for a linear-Gaussian graph, the increase of the
-    optimised cost when the edge is added equals the Mahalanobis norm of the edge's innovation
+    The graph is first optimised without the new edge from ``T_wc`` (a chain of odometry edges
+    composed is at its optimum already: one linearisation), then with it from there. For a
+    linear-Gaussian graph the increase of the optimised cost when the edge is added equals the Mahalanobis norm of the edge's innovation
     ``nu = log(T_ij_new^-1 T_wi^-1 T_wj)`` against its predicted covariance
     ``S = Omega_new^+ + J P J^T`` (``P`` the graph's pose covariance), and is chi-square
     distributed with the edge's degrees of freedom when the edge and the graph agree; a wrong
     edge raises it by its squared error in units of that covariance.
 
     Args:
-        T_wc: (N, 4, 4) poses at the optimum of the graph without the new edge.
+        T_wc: (N, 4, 4) initial poses (float64 recommended).
         i, j, T_ij, information: the graph's edges, as for :func:`optimize_pose_graph`.
         new_i, new_j: nodes of the new edge.
         new_T_ij: (4, 4) its measured ``T_wi^-1 T_wj``.
@@ -255,6 +255,8 @@ def edge_consistency(
     if dof == 0:
         raise InvalidValueError("new_information: the new edge carries no information (rank 0)")
     dt, dev = T_wc.dtype, T_wc.device
+    if i.numel():
+        T_wc = optimize_pose_graph(T_wc, i, j, T_ij, information, fixed=fixed, config=config).T_wc
     before = graph_cost(T_wc, i, j, T_ij, information)
     i2 = torch.cat([i, torch.tensor([new_i], dtype=torch.int64, device=dev)])
     j2 = torch.cat([j, torch.tensor([new_j], dtype=torch.int64, device=dev)])
