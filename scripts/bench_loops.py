@@ -10,9 +10,9 @@ Three parts, each printed as a markdown table and written to ``scripts/results/b
 * ``long``: long synthetic sequences along the "loop" trajectory, which revisit their start
   once near the end (with and without depth noise), per attitude source: loops verified,
   accepted and rejected, and the ATE with and without loop closure. At every verified loop two
-  planted false loops are tested first (``PlantedNISlam``): the verified transform moved by
-  ``--false-offset`` metres, and the verified transform attached to a keyframe half the
-  sequence away (a different place); each must be rejected. The same runs with the old
+  planted false loops are tested first and undone (``PlantedNISlam``): the verified transform
+  moved by each of ``--false-offsets`` metres, and the verified transform attached to a
+  keyframe half the sequence away (a different place); each should be rejected. The same runs with the old
   acceptance rule (``max_odometry_bend_m`` 0.05 m, no chi-square test) are the baseline.
 * ``window``: ``loop.local_window`` on and off (ATE and frame time), when asked for.
 
@@ -44,35 +44,49 @@ HELD_OUT_SEEDS = (100, 101, 102, 103, 104)
 # The acceptance rule before the chi-square test: the optimised graph may bend no odometry
 # edge's translation by more than 5 cm (the chi-square test made permissive).
 OLD_RULE = {"max_odometry_bend_m": 0.05, "chi2_quantile": 1 - 1e-15}
+RULES = {"chi2": {}, "old-bend": OLD_RULE, "no-loops": {"enabled": False}}
 
 
 class PlantedNISlam(NISlam):
-    """NI-SLAM that tests two planted false loops before every verified one.
+    """NI-SLAM that tests planted false loops before every verified one, then undoes them.
+
+    The planted loops: the verified transform moved by each of ``false_offsets`` metres (along
+    x + y), and the verified transform attached to the keyframe halfway between the two (a
+    different place). Whatever the test decides, the system's graph, poses and counters are
+    restored before the verified loop is tried, so the true loops are measured as without them.
 
     Attributes:
-        false_offset: metres added to the verified loop's translation (first planted loop).
-        planted: per planted loop, its kind and whether the system accepted it.
+        false_offsets: metres added to the verified loop's translation.
+        planted: per planted loop, its kind, the chi-square increase and whether it was accepted.
     """
 
-    def __init__(self, cfg: NISlamConfig, false_offset: float):
+    def __init__(self, cfg: NISlamConfig, false_offsets: tuple[float, ...]):
         super().__init__(cfg)
-        self.false_offset = false_offset
+        self.false_offsets = false_offsets
         self.planted: list[dict] = []
 
-    def _try_loop(self, j_old, k_new, T_jk, variance):
-        if len(self.keyframes) > 2:
-            shifted = T_jk.clone()
+    def _try_loop(self, j_old, k_new, T_jk, variance, window=None):
+        if window is None and len(self.keyframes) > 2:
             direction = torch.tensor([1.0, 1.0, 0.0], dtype=T_jk.dtype) / math.sqrt(2)
-            shifted[:3, 3] += self.false_offset * direction
-            elsewhere = (j_old + k_new) // 2 if abs((j_old + k_new) // 2 - j_old) > 2 else None
-            for kind, j, T in (("offset", j_old, shifted), ("elsewhere", elsewhere, T_jk)):
-                if j is None or j == k_new:
-                    continue
-                before = dict(self.loops)
+            trials = []
+            for offset in self.false_offsets:
+                shifted = T_jk.clone()
+                shifted[:3, 3] += offset * direction
+                trials.append((f"offset {offset:g} m", j_old, shifted))
+            mid = (j_old + k_new) // 2
+            if abs(mid - j_old) > 2:
+                trials.append(("elsewhere", mid, T_jk))
+            for kind, j, T in trials:
+                saved = ([list(x) for x in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop)],
+                         [kf.T_wk for kf in self.keyframes], self.R_corr, self._history_start, dict(self.loops))
                 accepted = super()._try_loop(j, k_new, T, variance)
-                self.loops = before  # the planted loops do not count as the system's
-                self.planted.append({"kind": kind, "accepted": accepted})
-        return super()._try_loop(j_old, k_new, T_jk, variance)
+                test = self.loop_tests.pop()
+                self.planted.append({"kind": kind, "accepted": accepted, "chi2_increase": test["chi2_increase"]})
+                lists, poses, self.R_corr, self._history_start, self.loops = saved
+                self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop = lists
+                for kf, T_wk in zip(self.keyframes, poses):
+                    kf.T_wk = T_wk
+        return super()._try_loop(j_old, k_new, T_jk, variance, window)
 
 
 def odometry_errors(system: NISlam, groundtruth: Trajectory) -> dict[str, torch.Tensor]:
@@ -210,17 +224,21 @@ def nees(quick: bool, frames: int, overrides: dict, dump: str | None = None) -> 
     return rows
 
 
-def long_runs(quick: bool, false_offset: float, attitudes: list[str]) -> list[dict]:
+def long_runs(
+    quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True)
+) -> list[dict]:
     """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule."""
     frames = 150 if quick else 1500
     # One lap that takes 90 % of the sequence: the last tenth revisits the start.
     period = frames / 30.0 * 0.9
     rows = []
-    for noise in (False, True):
+    for noise in noises:
         seq = _synthetic(0, frames, noise, period)
         for att in attitudes:
-            for rule, loop in (("chi2", {}), ("old-bend", OLD_RULE), ("no-loops", {"enabled": False})):
-                system = PlantedNISlam(config_from_dict(NISlamConfig, {"attitude": att, "loop": loop}), false_offset)
+            for rule, loop in RULES.items():
+                if rule not in rules:
+                    continue
+                system = PlantedNISlam(config_from_dict(NISlamConfig, {"attitude": att, "loop": loop}), false_offsets)
                 t0 = time.perf_counter()
                 res = run_sequence(system, seq)
                 wall = time.perf_counter() - t0
@@ -232,6 +250,7 @@ def long_runs(quick: bool, false_offset: float, attitudes: list[str]) -> list[di
                     "frames": frames, "depth_noise": noise, "attitude": att, "rule": rule,
                     "keyframes": len(out.keyframe_indices), "ate_rmse_m": a.stats["rmse"], **{f"loops_{k}": v for k, v in loops.items()},
                     "planted_false": len(planted), "planted_false_accepted": sum(p["accepted"] for p in planted),
+                    "planted_accepted_by_kind": {k: sum(p["accepted"] for p in planted if p["kind"] == k) for k in sorted({p["kind"] for p in planted})},
                     "loop_tests": out.metrics["loop_tests"], "planted": planted,
                     "wall_s": wall,
                 }
@@ -239,7 +258,7 @@ def long_runs(quick: bool, false_offset: float, attitudes: list[str]) -> list[di
                 print(f"  long noise={noise!s:5s} {att:11s} {rule:8s} ATE {100 * a.stats['rmse']:6.2f} cm  verified "
                       f"{loops['verified']} accepted {loops['accepted']} chi2-rejected {loops['rejected_by_chi2']} "
                       f"bend-rejected {loops['rejected_by_odometry']}  planted false accepted "
-                      f"{row['planted_false_accepted']}/{row['planted_false']}", flush=True)
+                      f"{row['planted_false_accepted']}/{row['planted_false']} {row['planted_accepted_by_kind']}", flush=True)
     return rows
 
 
@@ -300,7 +319,8 @@ def markdown(result: dict) -> str:
         for r in result["long"]:
             lines.append(f"| {r['frames']} | {r['depth_noise']} | {r['attitude']} | {r['rule']} | {100 * r['ate_rmse_m']:.2f} | "
                          f"{r['loops_verified']} | {r['loops_accepted']} | {r['loops_rejected_by_chi2']} | "
-                         f"{r['loops_rejected_by_odometry']} | {r['planted_false_accepted']}/{r['planted_false']} |")
+                         f"{r['loops_rejected_by_odometry']} | {r['planted_false_accepted']}/{r['planted_false']} "
+                         f"({', '.join(f'{k}: {v}' for k, v in r['planted_accepted_by_kind'].items())}) |")
         lines.append("")
     if result.get("window"):
         size = result["window_size"]
@@ -319,11 +339,13 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="short sequences (smoke run)")
     ap.add_argument("--only", choices=["nees", "long", "window"], default=None, help="run one part")
     ap.add_argument("--window", type=int, default=3, help="loop.local_window compared with 0 (part window)")
-    ap.add_argument("--false-offset", type=float, default=0.3, help="metres added to a planted false loop's translation")
+    ap.add_argument("--false-offsets", default="0.3,1.0", help="metres added to planted false loops' translations (comma-separated)")
     ap.add_argument("--attitudes", default="groundtruth,simulated", help="attitude sources of the long runs (comma-separated)")
     ap.add_argument("--nees-frames", type=int, default=200, help="frames of each NEES sequence")
     ap.add_argument("--loop", default="{}", help="JSON overrides of the loop section (e.g. a calibration to check)")
     ap.add_argument("--dump-nees", default=None, help="save the per-edge errors and variances under this path prefix (torch.save)")
+    ap.add_argument("--rules", default="chi2,old-bend,no-loops", help="acceptance rules of the long runs (comma-separated)")
+    ap.add_argument("--depth-noise", default="off,on", help="depth noise of the long runs: off, on or both (comma-separated)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
     args = ap.parse_args()
     torch.set_num_threads(int(__import__("os").environ.get("OMP_NUM_THREADS", "1")))
@@ -331,12 +353,13 @@ def main() -> None:
     if args.only in (None, "nees"):
         result["nees"] = nees(args.quick, args.nees_frames, json.loads(args.loop), args.dump_nees)
     if args.only in (None, "long"):
-        result["long"] = long_runs(args.quick, args.false_offset, args.attitudes.split(","))
+        result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
+                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")))
     if args.only in (None, "window"):
         result["window_size"] = args.window
         result["window"] = window(args.quick, args.window)
     print(markdown(result))
-    if not args.quick:
+    if not args.quick or args.out != str(RESULTS / "bench_loops.json"):
         with open(args.out, "w") as f:
             json.dump(result, f, indent=1)
 

@@ -130,3 +130,21 @@ def test_synthetic_revisit_accepts_the_true_loop_rejects_the_planted_one():
         assert loops["rejected_by_chi2"] == len(system.planted)
         assert loops["accepted"] >= 1 and loops["rejected_by_odometry"] == 0
         assert a_loop.stats["rmse"] < 0.01
+
+
+def test_local_window_edge_moves_only_the_window():
+    system, T_gt = _planted_chain("groundtruth", {"local_window": 3})
+    n = len(T_gt)
+    before = torch.stack([kf.T_wk for kf in system.keyframes])
+    lo = n - 5
+    T_true = se3_inverse(T_gt[n - 3]) @ T_gt[n - 1]
+    sharp = torch.tensor([1e-4, 1e-4, 4e-5], dtype=torch.float64)
+    assert system._try_loop(n - 3, n - 1, T_true, sharp, window=lo)
+    after = torch.stack([kf.T_wk for kf in system.keyframes])
+    assert torch.equal(after[: lo + 1], before[: lo + 1])  # outside the window, and its held first keyframe
+    assert not torch.allclose(after[lo + 1 :], before[lo + 1 :])
+    assert system.local["accepted"] == 1 and system.loops["accepted"] == 0 and not system.loop_tests
+    wrong = T_true.clone()
+    wrong[:3, 3] += torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64)
+    assert not system._try_loop(n - 4, n - 1, wrong, sharp, window=lo)
+    assert system.local["rejected_by_chi2"] == 1

@@ -468,8 +468,7 @@ class NISlam:
             if edge is None:
                 continue
             self.local["verified"] += 1
-            if self._try_loop(cand, kid, edge.T_jk, edge.variance, window=lo):
-                self.local["accepted"] += 1
+            self._try_loop(cand, kid, edge.T_jk, edge.variance, window=lo)
 
     def _verify(self, cand: int, kf: _Keyframe) -> _LoopEdge | None:
         """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map."""
@@ -546,8 +545,7 @@ class NISlam:
             logger.info("edge %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, bend)
             return False
         self._add_edge(j_old, k_new, T_jk, info, loop=True)
-        if window is None:
-            self.loops["accepted"] += 1
+        counts["accepted"] += 1
         self._history_start = len(self.frames)
         for kf, T in zip(self.keyframes[lo:], res.T_wc):
             kf.T_wk = T
