@@ -19,6 +19,7 @@ Three parts, each printed as a markdown table and written to ``scripts/results/b
     python scripts/bench_loops.py                # everything (long: tens of minutes on 2 cores)
     python scripts/bench_loops.py --quick        # smoke run (short sequences)
     python scripts/bench_loops.py --only nees    # one part
+    python scripts/bench_loops.py --merge a.json b.json   # parts run apart, into bench_loops.json
 """
 
 from __future__ import annotations
@@ -177,7 +178,11 @@ def _with_information(errs: dict[str, torch.Tensor], system: NISlam, raw: list, 
     return {**errs, "var_t": var_t}
 
 
-def nees(quick: bool, frames: int, overrides: dict, dump: str | None = None) -> list[dict]:
+def nees(
+    quick: bool, frames: int, overrides: dict, dump: str | None = None,
+    splits: tuple[str, ...] = ("tuning", "held-out"), kinds: tuple[str, ...] = ("loop", "handheld", "orbit"),
+    attitudes: tuple[str, ...] = ("groundtruth", "simulated"),
+) -> list[dict]:
     """NEES of odometry edges on synthetic sequences, per attitude source, tuning and held-out seeds."""
     frames = 60 if quick else frames
     rows = []
@@ -187,10 +192,12 @@ def nees(quick: bool, frames: int, overrides: dict, dump: str | None = None) -> 
     root = data_root()
     for split, names, seeds in (("tuning", ("tum_fr1_xyz", "7scenes_redkitchen"), TUNING_SEEDS),
                                 ("held-out", ("hololens_dvmvs",), HELD_OUT_SEEDS)):
+        if split not in splits:
+            continue
         seeds = seeds[:1] if quick else seeds
-        sources = [(f"synthetic-{kind}-{seed}", seed, kind) for seed in seeds for kind in ("loop", "handheld", "orbit")]
+        sources = [(f"synthetic-{kind}-{seed}", seed, kind) for seed in seeds for kind in kinds]
         sources += [(name, None, None) for name in names if (root / name / "rgb.txt").is_file()]
-        for att in ("groundtruth", "simulated"):
+        for att in attitudes:
             per = {"configured": [], "raw": []}
             by_sequence = {}
             for name, seed, kind in sources:
@@ -343,15 +350,32 @@ def main() -> None:
     ap.add_argument("--attitudes", default="groundtruth,simulated", help="attitude sources of the long runs (comma-separated)")
     ap.add_argument("--nees-frames", type=int, default=200, help="frames of each NEES sequence")
     ap.add_argument("--loop", default="{}", help="JSON overrides of the loop section (e.g. a calibration to check)")
+    ap.add_argument("--nees-splits", default="tuning,held-out", help="NEES: tuning, held-out or both")
+    ap.add_argument("--nees-kinds", default="loop,handheld,orbit", help="NEES: synthetic trajectories")
+    ap.add_argument("--nees-attitudes", default="groundtruth,simulated", help="NEES: attitude sources")
     ap.add_argument("--dump-nees", default=None, help="save the per-edge errors and variances under this path prefix (torch.save)")
     ap.add_argument("--rules", default="chi2,old-bend,no-loops", help="acceptance rules of the long runs (comma-separated)")
     ap.add_argument("--depth-noise", default="off,on", help="depth noise of the long runs: off, on or both (comma-separated)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
+    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                    help="combine the parts of earlier runs (each a JSON this script wrote) into --out and print their tables")
     args = ap.parse_args()
+    if args.merge:
+        result: dict = {}
+        for path in args.merge:
+            with open(path) as f:
+                part = json.load(f)
+            for key, value in part.items():
+                result[key] = result.get(key, []) + value if isinstance(value, list) else value
+        print(markdown(result))
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        return
     torch.set_num_threads(int(__import__("os").environ.get("OMP_NUM_THREADS", "1")))
     result: dict = {"quick": args.quick}
     if args.only in (None, "nees"):
-        result["nees"] = nees(args.quick, args.nees_frames, json.loads(args.loop), args.dump_nees)
+        result["nees"] = nees(args.quick, args.nees_frames, json.loads(args.loop), args.dump_nees,
+                              tuple(args.nees_splits.split(",")), tuple(args.nees_kinds.split(",")), tuple(args.nees_attitudes.split(",")))
     if args.only in (None, "long"):
         result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
                                    tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")))

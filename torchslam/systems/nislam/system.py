@@ -26,7 +26,9 @@ variance and the depth variance for translation; the attitude source's error, gr
 time between keyframes, for rotation), stays within a chi-square quantile
 (``backend.edge_consistency``); otherwise it is rolled back (the paper's false relocalisation
 check, §9.2, as a statistical test). An optional extra guard rejects a loop whose optimised graph
-bends an odometry edge by more than a distance (``loop.max_odometry_bend_m``, off by default). The optimised rotation of the newest keyframe
+bends an odometry edge by more than a distance (``loop.max_odometry_bend_m``, off by default).
+Optionally (``loop.local_window``) a new keyframe is also matched against a few recent
+keyframes; each such edge passes the same test on the window's graph, which is then optimised. The optimised rotation of the newest keyframe
 corrects the attitude stream from then on, so inertial yaw drift is fused with the back-end.
 
 Every frame keeps its pose relative to its keyframe and is re-posed after each optimisation.
