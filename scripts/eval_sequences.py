@@ -61,7 +61,8 @@ def evaluate(seq: Path, system: str, frontend: str | None, runs: Path, max_frame
         "fps_end_to_end": m["fps_end_to_end"],
         "fps_compute": m["fps_compute"],
         "loops_accepted": loops.get("accepted"),
-        "loops_rejected": loops.get("rejected", loops.get("rejected_by_odometry")),
+        # GC-SLAM counts "rejected"; NI-SLAM its chi-square test's and its bend guard's apart.
+        "loops_rejected": loops.get("rejected", loops.get("rejected_by_chi2", 0) + loops.get("rejected_by_odometry", 0)),
         "lost_frames": m.get("tracking", {}).get("lost_frames"),
         "fastgo_ms_last": m.get("fastgo_ms_last"),
         "fastgo_ms_max": m.get("fastgo_ms_max"),

@@ -132,3 +132,40 @@ def reference_linearize(
         acc[:, :36].reshape(M, 6, 6), acc[:, 36:72].reshape(M, 6, 6), acc[:, 72:108].reshape(M, 6, 6),
         acc[:, 108:114], acc[:, 114:120], acc[:, 120],
     )
+
+
+def reference_edge_innovation(
+    T_wc: Tensor, i: Tensor, j: Tensor, T_ij: Tensor, information: Tensor,
+    new_i: int, new_j: int, new_T_ij: Tensor, new_information: Tensor, fixed: int = 0,
+) -> float:
+    """Mahalanobis norm of a new edge's innovation against the graph's predicted covariance.
+
+    The linear-Gaussian route, dense and by autograd: the graph's pose covariance
+    ``P = (J^T Omega J)^-1`` with node ``fixed`` held (one dense matrix over all free nodes), the
+    new edge's residual ``nu`` and Jacobian ``J_new`` at ``T_wc``, and
+    ``nu^T (Omega_new^+ + J_new P J_new^T)^+ nu`` restricted to the range of ``Omega_new`` (a
+    translation-only edge tests 3 components). float64.
+    """
+    from torchslam.backend import edge_residuals
+    from torchslam.geometry import se3_exp
+
+    n = T_wc.shape[0]
+    free = [k for k in range(n) if k != fixed]
+
+    def residuals(delta: Tensor, ii: Tensor, jj: Tensor, T: Tensor) -> Tensor:
+        full = T_wc.new_zeros(n, 6)
+        full[free] = delta.reshape(len(free), 6)
+        return edge_residuals(se3_exp(full) @ T_wc, ii, jj, T)
+
+    d0 = T_wc.new_zeros(6 * len(free))
+    J = torch.autograd.functional.jacobian(lambda d: residuals(d, i, j, T_ij), d0).reshape(len(i), 6, -1)
+    H = torch.einsum("eak,eab,ebl->kl", J, information, J)
+    P = torch.linalg.inv(H)
+    ni, nj = torch.tensor([new_i]), torch.tensor([new_j])
+    nu = residuals(d0, ni, nj, new_T_ij[None])[0]
+    J_new = torch.autograd.functional.jacobian(lambda d: residuals(d, ni, nj, new_T_ij[None])[0], d0)  # (6, 6F)
+    evals, evecs = torch.linalg.eigh(new_information)
+    U = evecs[:, evals > 1e-12 * evals.max()]  # range of the information
+    S = torch.diag(1.0 / evals[evals > 1e-12 * evals.max()]) + U.T @ J_new @ P @ J_new.T @ U
+    v = U.T @ nu
+    return float(v @ torch.linalg.solve(S, v))

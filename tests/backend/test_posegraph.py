@@ -1,11 +1,13 @@
 import pytest
 import torch
 
-from torchslam.backend import edge_residuals, linearize_pose_graph, optimize_pose_graph
+from torchslam.backend import chi2_quantile, edge_consistency, edge_residuals, graph_cost, linearize_pose_graph, optimize_pose_graph
 from torchslam.errors import InvalidValueError, ShapeError
+from torchslam.optim import LMConfig
 from torchslam.geometry import se3_exp, se3_inverse, se3_log
 
 from tests._helpers import seeded
+from tests._references import reference_edge_innovation
 
 
 def _loop_graph(n=30, seed=0, noise=0.0):
@@ -86,3 +88,74 @@ def test_bad_edges_raise():
         optimize_pose_graph(T_gt, i, i, T_ij, info)
     with pytest.raises(ShapeError, match="information"):
         optimize_pose_graph(T_gt, i, j, T_ij, info[:, :3])
+
+
+def _drifting_chain(n=10, seed=0, sigma_t=0.01, sigma_r=0.002):
+    """A chain of odometry edges measured with noise of the stated sigmas, composed (its optimum)."""
+    g = seeded(seed)
+    xi = torch.zeros(n, 6, dtype=torch.float64)
+    xi[:, 0] = torch.linspace(0, 2.0, n, dtype=torch.float64)
+    xi[:, 1] = 0.3 * torch.sin(torch.linspace(0, 3, n, dtype=torch.float64))
+    xi[:, 3:] = 0.1 * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    T_gt = se3_exp(xi)
+    i, j = torch.arange(n - 1), torch.arange(1, n)
+    noise = torch.cat([sigma_t * torch.randn(n - 1, 3, generator=g, dtype=torch.float64),
+                       sigma_r * torch.randn(n - 1, 3, generator=g, dtype=torch.float64)], -1)
+    T_ij = (se3_inverse(T_gt[i]) @ T_gt[j]) @ se3_exp(noise)
+    info = torch.diag(torch.tensor([sigma_t**-2] * 3 + [sigma_r**-2] * 3, dtype=torch.float64)).expand(n - 1, 6, 6).clone()
+    T_est = [T_gt[0]]
+    for e in range(n - 1):
+        T_est.append(T_est[-1] @ T_ij[e])
+    return T_gt, torch.stack(T_est), i, j, T_ij, info
+
+
+@pytest.mark.parametrize("translation_only", [True, False])
+def test_chi2_increase_equals_the_innovation_test(translation_only):
+    # Small noise: the SE(3) graph is nearly linear, so the optimised cost increase must equal the
+    # dense linear-Gaussian innovation norm nu^T S^-1 nu.
+    T_gt, T0, i, j, T_ij, info = _drifting_chain(8, sigma_t=0.002, sigma_r=0.0005)
+    n = T0.shape[0]
+    diag = torch.tensor([0.002**-2] * 3 + ([0.0] * 3 if translation_only else [0.0005**-2] * 3), dtype=torch.float64)
+    T_loop = se3_inverse(T_gt[0]) @ T_gt[n - 1] @ se3_exp(torch.tensor([0.003, -0.002, 0.001, 0.0, 0.0, 0.0], dtype=torch.float64))
+    test = edge_consistency(T0, i, j, T_ij, info, 0, n - 1, T_loop, torch.diag(diag), 0.99,
+                            config=LMConfig(iterations=30, tol=1e-14))
+    ref = reference_edge_innovation(T0, i, j, T_ij, info, 0, n - 1, T_loop, torch.diag(diag))
+    assert test.dof == (3 if translation_only else 6)
+    assert test.threshold == pytest.approx(chi2_quantile(0.99, test.dof))
+    assert ref > 1.0  # a visible increase, not a trivial zero
+    assert float(test.chi2_increase) == pytest.approx(ref, rel=2e-3)
+
+
+def test_true_loop_accepted_false_loops_rejected():
+    # Large drift (6 mm per edge over 30 edges) that honest covariances explain: the true loop is
+    # consistent even though it moves the chain's end by centimetres, a 0.3 m wrong one is not.
+    T_gt, T0, i, j, T_ij, info = _drifting_chain(31, seed=3, sigma_t=0.006, sigma_r=0.001)
+    n = T0.shape[0]
+    drift = float((T0[-1, :3, 3] - T_gt[-1, :3, 3]).norm())
+    assert drift > 0.03
+    info_loop = torch.diag(torch.tensor([1e-3**-2] * 3 + [0.0] * 3, dtype=torch.float64))
+    T_true = se3_inverse(T_gt[0]) @ T_gt[-1]
+    ok = edge_consistency(T0, i, j, T_ij, info, 0, n - 1, T_true, info_loop, 0.999)
+    assert ok.consistent, float(ok.chi2_increase)
+    # The optimised poses move toward ground truth.
+    assert float((ok.result.T_wc[-1, :3, 3] - T_gt[-1, :3, 3]).norm()) < 0.3 * drift
+    T_wrong = T_true.clone()
+    T_wrong[:3, 3] += torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64)
+    bad = edge_consistency(T0, i, j, T_ij, info, 0, n - 1, T_wrong, info_loop, 0.999)
+    assert not bad.consistent and float(bad.chi2_increase) > 3 * bad.threshold
+    # A different place: the true measurement attached to a node halfway along the chain.
+    elsewhere = edge_consistency(T0, i, j, T_ij, info, n // 2, n - 1, T_true, info_loop, 0.999)
+    assert not elsewhere.consistent
+
+
+def test_graph_cost_and_edge_consistency_bad_input():
+    T_gt, T0, i, j, T_ij, info = _drifting_chain(4)
+    assert float(graph_cost(T0, i, j, T_ij, info)) == pytest.approx(0.0, abs=1e-18)
+    assert float(graph_cost(T_gt, i, j, T_ij, info)) > 0
+    eye = torch.eye(4, dtype=torch.float64)
+    with pytest.raises(InvalidValueError, match="quantile"):
+        edge_consistency(T0, i, j, T_ij, info, 0, 3, eye, info[0], 1.0)
+    with pytest.raises(InvalidValueError, match="no information"):
+        edge_consistency(T0, i, j, T_ij, info, 0, 3, eye, torch.zeros(6, 6, dtype=torch.float64), 0.9)
+    with pytest.raises(ShapeError, match="new_T_ij"):
+        edge_consistency(T0, i, j, T_ij, info, 0, 3, eye[:3], info[0], 0.9)

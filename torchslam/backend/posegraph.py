@@ -27,7 +27,10 @@ from ..errors import DTypeError, InvalidValueError, check_float, check_shape
 from ..geometry import se3_adjoint, se3_inverse, se3_log, skew
 from ..optim import BlockSparseMatrix, LMConfig, levenberg_marquardt_se3
 
-__all__ = ["PoseGraphResult", "edge_residuals", "linearize_pose_graph", "optimize_pose_graph"]
+__all__ = [
+    "EdgeTest", "PoseGraphResult", "chi2_quantile", "edge_consistency", "edge_residuals", "graph_cost",
+    "linearize_pose_graph", "optimize_pose_graph",
+]
 
 
 @dataclass(frozen=True)
@@ -161,3 +164,114 @@ def optimize_pose_graph(
     node_problem = torch.zeros(N, dtype=torch.int64, device=T_wc.device)
     res = levenberg_marquardt_se3(T_wc, node_problem, 1, linearize, evaluate, mask, config)
     return PoseGraphResult(res.T, res.cost[0], int(res.iterations[0]), bool(res.converged[0]), res.time_s)
+
+
+def graph_cost(T_wc: Tensor, i: Tensor, j: Tensor, T_ij: Tensor, information: Tensor) -> Tensor:
+    """The pose graph's cost ``chi^2 = sum_e r_e^T Omega_e r_e`` at ``T_wc``.
+
+    Args:
+        T_wc: (N, 4, 4) node poses.
+        i, j: (E,) int64 node indices of each edge.
+        T_ij: (E, 4, 4) measured relative transforms.
+        information: (E, 6, 6) information matrices.
+
+    Returns:
+        () chi^2 in ``T_wc``'s dtype (0 for no edges).
+    """
+    _check_edges(T_wc, i, j, T_ij, information)
+    if not i.numel():
+        return T_wc.new_zeros(())
+    r = edge_residuals(T_wc, i, j, T_ij.to(T_wc.dtype))
+    return (r * (information.to(T_wc.dtype) @ r[..., None])[..., 0]).sum()
+
+
+@dataclass(frozen=True)
+class EdgeTest:
+    """Outcome of :func:`edge_consistency`.
+
+    Attributes:
+        chi2_increase: () ``chi^2`` of the optimised graph with the new edge minus that of the
+            optimised graph without it.
+        dof: degrees of freedom of the new edge (rank of its information matrix).
+        threshold: the ``chi^2`` quantile the increase is compared with.
+        consistent: ``chi2_increase <= threshold`` and the optimisation stayed finite.
+        result: the optimisation of the graph with the new edge.
+    """
+
+    chi2_increase: Tensor
+    dof: int
+    threshold: float
+    consistent: bool
+    result: PoseGraphResult
+
+
+def edge_consistency(
+    T_wc: Tensor,
+    i: Tensor,
+    j: Tensor,
+    T_ij: Tensor,
+    information: Tensor,
+    new_i: int,
+    new_j: int,
+    new_T_ij: Tensor,
+    new_information: Tensor,
+    quantile: float,
+    fixed: int | Tensor = 0,
+    config: LMConfig = LMConfig(iterations=20, tol=1e-10),
+) -> EdgeTest:
+    """Test a new edge (a loop closure) for consistency with the graph: the chi-square increase.
+
+    The graph is first optimised without the new edge from ``T_wc`` (a chain of odometry edges
+    composed is at its optimum already: one linearisation), then with it from there. For a
+    linear-Gaussian graph the increase of the optimised cost when the edge is added equals the Mahalanobis norm of the edge's innovation
+    ``nu = log(T_ij_new^-1 T_wi^-1 T_wj)`` against its predicted covariance
+    ``S = Omega_new^+ + J P J^T`` (``P`` the graph's pose covariance), and is chi-square
+    distributed with the edge's degrees of freedom when the edge and the graph agree; a wrong
+    edge raises it by its squared error in units of that covariance.
+
+    Args:
+        T_wc: (N, 4, 4) initial poses (float64 recommended).
+        i, j, T_ij, information: the graph's edges, as for :func:`optimize_pose_graph`.
+        new_i, new_j: nodes of the new edge.
+        new_T_ij: (4, 4) its measured ``T_wi^-1 T_wj``.
+        new_information: (6, 6) its information matrix (may be rank-deficient: a translation-only
+            edge has rank 3).
+        quantile: probability of the chi-square quantile in (0, 1): the edge is consistent when its
+            increase is at most the ``quantile`` quantile with its degrees of freedom.
+        fixed: the gauge, as for :func:`optimize_pose_graph`.
+        config: the optimisation's settings.
+
+    Returns:
+        EdgeTest.
+
+    Raises:
+        InvalidValueError: ``quantile`` outside (0, 1) or a new edge without information.
+    """
+    if not 0.0 < quantile < 1.0:
+        raise InvalidValueError(f"quantile: expected a probability in (0, 1), got {quantile}")
+    check_shape(new_T_ij, "4 4", "new_T_ij")
+    check_shape(new_information, "6 6", "new_information")
+    dof = int(torch.linalg.matrix_rank(new_information.to(torch.float64)))
+    if dof == 0:
+        raise InvalidValueError("new_information: the new edge carries no information (rank 0)")
+    dt, dev = T_wc.dtype, T_wc.device
+    if i.numel():
+        T_wc = optimize_pose_graph(T_wc, i, j, T_ij, information, fixed=fixed, config=config).T_wc
+    before = graph_cost(T_wc, i, j, T_ij, information)
+    i2 = torch.cat([i, torch.tensor([new_i], dtype=torch.int64, device=dev)])
+    j2 = torch.cat([j, torch.tensor([new_j], dtype=torch.int64, device=dev)])
+    T2 = torch.cat([T_ij.to(dt), new_T_ij.to(dt)[None]])
+    info2 = torch.cat([information.to(dt), new_information.to(dt)[None]])
+    res = optimize_pose_graph(T_wc, i2, j2, T2, info2, fixed=fixed, config=config)
+    after = graph_cost(res.T_wc, i2, j2, T2, info2)
+    increase = after - before
+    threshold = chi2_quantile(quantile, dof)
+    finite = bool(torch.isfinite(res.T_wc).all()) and bool(torch.isfinite(increase))
+    return EdgeTest(increase, dof, threshold, finite and float(increase) <= threshold, res)
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The ``probability`` quantile of the chi-square distribution with ``dof`` degrees of freedom."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, dof))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -48,10 +49,38 @@ class LoopConfig:
         min_matched: smallest fraction of well-matched orthographic pixels for a verified loop.
         max_rotation_deg: largest attitude difference between the two keyframes (the
             orthographic views of two very different attitudes share little).
-        max_odometry_bend_m: reject the loop when, after optimisation, any odometry edge's
-            translation residual exceeds this (the front-end disagrees: §9.2).
-        rotation_sigma_deg: standard deviation of an edge's rotation (attitude) per edge.
-        min_translation_sigma_m: floor of an edge's translation standard deviation.
+        chi2_quantile: a verified loop is accepted when the chi-square increase of the optimised
+            pose graph it causes (``backend.edge_consistency``: for a linear-Gaussian graph the
+            Mahalanobis norm of the loop's innovation against the graph's predicted relative-pose
+            covariance) is at most this quantile of the chi-square distribution with the loop
+            edge's degrees of freedom (3: the verification measures translation; its rotation is
+            the attitude's own, already in the graph). 0.999 rejects one true loop in a thousand
+            when the edges' covariances are honest.
+        max_odometry_bend_m: an extra guard after the statistical test: reject the loop when,
+            after optimisation, any odometry edge's translation residual exceeds this, metres
+            (the paper's comparison with the front-end odometry, §9.2); ``inf`` (the default)
+            turns it off: a long drift legitimately bends some edges by more than any fixed
+            distance.
+        rotation_sigma_deg: standard deviation of an odometry edge's rotation with an inertial
+            attitude (``imu`` or ``simulated``) at zero time between its keyframes, degrees (the
+            AHRS's per-sample error); the drift below adds to it.
+        groundtruth_rotation_sigma_deg: the same with ground-truth attitude (exact up to the
+            ground truth's own noise), degrees.
+        gyro_bias_sigma: gyro bias an inertial attitude leaves uncorrected, rad/s: the rotation
+            variance of an odometry edge whose keyframes are ``dt`` apart grows by
+            ``(gyro_bias_sigma dt)^2 + sim_gyro_noise^2 dt + sim_bias_walk^2 dt^3 / 3`` (the yaw
+            drift of a gyro without magnetometer; white noise and bias walk from the attitude
+            noise settings).
+        translation_variance_scale: an edge's image-plane (x, y) translation variance is this
+            times the correlation's Eq. (19) variance (calibrated by the normalised estimation
+            error of odometry edges against ground truth, ``scripts/bench_loops.py --nees``).
+        depth_variance_scale: an edge's depth (z) variance is this times the population variance
+            of the matched pixels' depth differences (``kcc.depth_translation``; the variance of
+            one pixel's difference, larger than that of their median).
+        min_translation_sigma_m: floor of an edge's translation standard deviation, metres.
+        local_window: when a keyframe is made, also register it (as a loop candidate is verified)
+            against this many keyframes before its predecessor, add the edges that pass the same
+            chi-square test on the window's graph and optimise the window; 0 turns it off.
     """
 
     enabled: bool = True
@@ -62,14 +91,23 @@ class LoopConfig:
     min_psr: float = 30.0
     min_matched: float = 0.1
     max_rotation_deg: float = 30.0
-    max_odometry_bend_m: float = 0.05
-    rotation_sigma_deg: float = 0.5
+    chi2_quantile: float = 0.999
+    max_odometry_bend_m: float = math.inf
+    rotation_sigma_deg: float = 0.09
+    groundtruth_rotation_sigma_deg: float = 0.01
+    gyro_bias_sigma: float = ImuNoise.gyro_bias_init
+    translation_variance_scale: float = 1.0
+    depth_variance_scale: float = 1.0
     min_translation_sigma_m: float = 0.002
+    local_window: int = 0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
         "min_psr": NON_NEGATIVE, "min_matched": FRACTION, "max_rotation_deg": Limit(ge=0, le=180),
-        "max_odometry_bend_m": POSITIVE, "rotation_sigma_deg": POSITIVE, "min_translation_sigma_m": POSITIVE,
+        "chi2_quantile": Limit(gt=0, lt=1), "max_odometry_bend_m": Limit(gt=0, allow_inf=True),
+        "rotation_sigma_deg": POSITIVE, "groundtruth_rotation_sigma_deg": POSITIVE, "gyro_bias_sigma": NON_NEGATIVE,
+        "translation_variance_scale": POSITIVE, "depth_variance_scale": POSITIVE, "min_translation_sigma_m": POSITIVE,
+        "local_window": NON_NEGATIVE,
     }
 
     def __post_init__(self) -> None:

@@ -20,8 +20,15 @@ Keyframes are remembered by their ORB descriptors in a multi-index hash (no down
 vocabulary). A new keyframe queries it; each candidate is verified by correlating the new
 keyframe's cloud against the candidate's fused orthographic map (PSR and a plausible relative
 transform), and an accepted loop adds an edge to the SE(3) pose graph, which is optimised
-with Levenberg-Marquardt. A loop whose optimised graph bends the odometry edges more than a
-threshold is rejected and rolled back (§9.2). The optimised rotation of the newest keyframe
+with Levenberg-Marquardt. A loop is accepted only when the graph agrees with it: the chi-square
+increase of the optimised graph it causes, with the edges' covariances (the correlation's Eq. (19)
+variance and the depth variance for translation; the attitude source's error, growing with the
+time between keyframes, for rotation), stays within a chi-square quantile
+(``backend.edge_consistency``); otherwise it is rolled back (the paper's false relocalisation
+check, §9.2, as a statistical test). An optional extra guard rejects a loop whose optimised graph
+bends an odometry edge by more than a distance (``loop.max_odometry_bend_m``, off by default).
+Optionally (``loop.local_window``) a new keyframe is also matched against a few recent
+keyframes; each such edge passes the same test on the window's graph, which is then optimised. The optimised rotation of the newest keyframe
 corrects the attitude stream from then on, so inertial yaw drift is fused with the back-end.
 
 Every frame keeps its pose relative to its keyframe and is re-posed after each optimisation.
@@ -45,7 +52,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ...backend import edge_residuals, optimize_pose_graph
+from ...backend import edge_consistency, edge_residuals
 from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...features import ORBConfig, extract_orb
@@ -160,7 +167,12 @@ class NISlam:
         self.edges_loop: list[bool] = []
         self.psr: list[float] = []
         self.untracked: dict[str, int] = {"attitude_gap": 0, "too_few_points": 0}
-        self.loops = {"candidates": 0, "verified": 0, "accepted": 0, "rejected_by_odometry": 0}
+        # rejected_by_chi2: the graph disagrees with the loop (statistical test);
+        # rejected_by_odometry: the optional bend guard, or a non-finite optimisation.
+        self.loops = {"candidates": 0, "verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
+        self.loop_tests: list[dict[str, float]] = []
+        # Edges to the recent keyframes (``loop.local_window``).
+        self.local = {"verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
         self.fused = 0
         self.stage_ms: dict[str, float] = {}
         self.mild = MILDDatabase(MILDConfig(top_k=cfg.loop.top_k, exclude_recent=cfg.loop.min_separation, min_score=cfg.loop.min_score))
@@ -361,25 +373,61 @@ class NISlam:
         self._ensure_filter(kf)
         kid = len(self.keyframes) - 1
         if previous is not None:
-            self._add_edge(kid - 1, kid, se3_inverse(previous.T_wk) @ T_wi, src.variance, loop=False)
+            dt = kf.timestamp - previous.timestamp
+            T_ij = se3_inverse(previous.T_wk) @ T_wi
+            self._add_edge(kid - 1, kid, T_ij, self._information(T_ij, src.variance, dt, loop=False))
         t0 = self._toc("keyframe", t0)
         self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
         if cfg.monitor_images_every and kid % cfg.monitor_images_every == 0:
             self.monitor.image("keyframe/ortho_grey", ortho.grey[0][None], frame.index)
             self._response_keyframe = kid
         if cfg.loop.enabled:
+            if cfg.loop.local_window:
+                self._local_window(kid)
             self._loop_closure(kid, rgb)
             self._toc("loop", t0)
         kf.cloud = None
 
-    def _add_edge(self, i: int, j: int, T_ij: Tensor, variance: Tensor, loop: bool) -> None:
+    def _information(self, T_ij: Tensor, variance: Tensor | None, dt: float, loop: bool) -> Tensor:
+        """(6, 6) information of edge ``T_ij`` (4, 4) from its match's translation variance (3,) m^2.
+
+        The variance is per axis of node i's frame, where the match measured the translation; the
+        residual's translation is in node j's (``log(T_ij^-1 T_wi^-1 T_wj)``), so the translation
+        block is rotated by ``R_ij``.
+
+        Translation: the correlation's Eq. (19) variance (x, y) and the depth variance (z), each
+        scaled (``loop.translation_variance_scale``, ``loop.depth_variance_scale``) and floored.
+        Rotation: for odometry, the attitude source's error between keyframes ``dt`` seconds
+        apart (``LoopConfig``); a loop edge carries none, since its rotation is the attitude's
+        own estimate, already in the graph through the odometry edges.
+        """
         lc = self.cfg.loop
-        var_t = variance.to(torch.float64).nan_to_num(nan=1.0, posinf=1.0).clamp_min(lc.min_translation_sigma_m**2)
-        var_r = torch.full((3,), math.radians(lc.rotation_sigma_deg) ** 2, dtype=torch.float64)
+        if variance is None:
+            variance = torch.full((3,), math.inf, dtype=torch.float64)
+        scale = torch.tensor([lc.translation_variance_scale, lc.translation_variance_scale, lc.depth_variance_scale], dtype=torch.float64)
+        var_t = (variance.to(torch.float64) * scale).nan_to_num(nan=1.0, posinf=1.0).clamp(lc.min_translation_sigma_m**2, 1.0)
+        R = T_ij[:3, :3].to(torch.float64)
+        info_t = R.T @ torch.diag(1.0 / var_t) @ R
+        if loop:
+            info_r = torch.zeros(3, dtype=torch.float64)
+        else:
+            info_r = torch.full((3,), 1.0 / self._rotation_variance(dt), dtype=torch.float64)
+        return torch.block_diag(info_t, torch.diag(info_r))
+
+    def _rotation_variance(self, dt: float) -> float:
+        """Per-axis variance of the attitude's relative rotation over ``dt`` seconds, rad^2."""
+        lc, cfg = self.cfg.loop, self.cfg
+        if self.attitude.source == "groundtruth":
+            return math.radians(lc.groundtruth_rotation_sigma_deg) ** 2
+        dt = abs(dt)
+        drift = (lc.gyro_bias_sigma * dt) ** 2 + cfg.sim_gyro_noise**2 * dt + cfg.sim_bias_walk**2 * dt**3 / 3
+        return math.radians(lc.rotation_sigma_deg) ** 2 + drift
+
+    def _add_edge(self, i: int, j: int, T_ij: Tensor, information: Tensor, loop: bool = False) -> None:
         self.edges_i.append(i)
         self.edges_j.append(j)
         self.edges_T.append(T_ij.to(torch.float64))
-        self.edges_info.append(torch.diag(1.0 / torch.cat([var_t, var_r])))
+        self.edges_info.append(information)
         self.edges_loop.append(loop)
 
     # ------------------------------------------------------------------ loop closure
@@ -404,6 +452,22 @@ class NISlam:
             return
         self.loops["verified"] += 1
         self._try_loop(best.candidate, kid, best.T_jk, best.variance)
+
+    def _local_window(self, kid: int) -> None:
+        """Register keyframe ``kid`` against the ``loop.local_window`` keyframes before its predecessor.
+
+        Each match that verifies like a loop candidate (``_verify``) and passes the same
+        chi-square test on the window's graph (its oldest keyframe held) adds an edge; the
+        window is optimised with it.
+        """
+        lo = max(0, kid - 1 - self.cfg.loop.local_window)
+        kf = self.keyframes[kid]
+        for cand in range(kid - 2, lo - 1, -1):
+            edge = self._verify(cand, kf)
+            if edge is None:
+                continue
+            self.local["verified"] += 1
+            self._try_loop(cand, kid, edge.T_jk, edge.variance, window=lo)
 
     def _verify(self, cand: int, kf: _Keyframe) -> _LoopEdge | None:
         """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map."""
@@ -430,32 +494,66 @@ class NISlam:
             torch.stack(self.edges_info),
         )
 
-    def _try_loop(self, j_old: int, k_new: int, T_jk: Tensor, variance: Tensor) -> None:
+    def _try_loop(self, j_old: int, k_new: int, T_jk: Tensor, variance: Tensor, window: int | None = None) -> bool:
+        """Test the edge ``j_old -> k_new`` against the graph; keep it and its optimisation if consistent.
+
+        Args:
+            j_old, k_new: the keyframes the edge joins.
+            T_jk: (4, 4) the edge's measured transform.
+            variance: (3,) its translation variance, m^2.
+            window: None for a loop (the whole graph, keyframe 0 held); else the oldest keyframe
+                of a local window (``_local_window``): only the keyframes from it on and the
+                edges among them take part, that keyframe held.
+
+        Returns:
+            Whether the edge was accepted.
+        """
         t0 = self._tic()
-        self._add_edge(j_old, k_new, T_jk, variance, loop=True)
-        i, j, T_ij, info = self._edges()
+        lc = self.cfg.loop
+        info = self._information(T_jk, variance, 0.0, loop=True)
+        i, j, T_ij, info_all = self._edges()
         T0 = torch.stack([kf.T_wk for kf in self.keyframes])
-        res = optimize_pose_graph(T0, i, j, T_ij, info, fixed=0, config=LMConfig(iterations=20, tol=1e-10))
-        odo = ~torch.tensor(self.edges_loop)
-        bend = edge_residuals(res.T_wc, i[odo], j[odo], T_ij[odo])[:, :3].norm(dim=-1).max()
+        lo = 0 if window is None else window
+        if lo:
+            inside = (i >= lo) & (j >= lo)
+            i, j, T_ij, info_all, T0 = i[inside] - lo, j[inside] - lo, T_ij[inside], info_all[inside], T0[lo:]
+        test = edge_consistency(
+            T0, i, j, T_ij, info_all, j_old - lo, k_new - lo, T_jk.to(torch.float64), info, lc.chi2_quantile,
+            fixed=0, config=LMConfig(iterations=20, tol=1e-10),
+        )
+        res = test.result
+        odo = ~torch.tensor(self.edges_loop, dtype=torch.bool)
+        if lo:
+            odo = odo[inside]
+        bend = float(edge_residuals(res.T_wc, i[odo], j[odo], T_ij[odo])[:, :3].norm(dim=-1).max()) if bool(odo.any()) else 0.0
         self.posegraph_ms.append(1000 * (time.perf_counter() - t0))
         self.monitor.scalar("optimization/posegraph_ms", self.posegraph_ms[-1], self.keyframes[k_new].frame_index)
         self._toc("posegraph", t0)
-        if float(bend) > self.cfg.loop.max_odometry_bend_m or not bool(torch.isfinite(res.T_wc).all()):
-            for lst in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop):
-                lst.pop()
-            self.loops["rejected_by_odometry"] += 1
-            logger.info("loop %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, float(bend))
-            return
-        self.loops["accepted"] += 1
+        chi2 = float(test.chi2_increase)
+        if window is None:
+            self.loop_tests.append(
+                {"keyframe": k_new, "candidate": j_old, "chi2_increase": chi2 if math.isfinite(chi2) else None, "threshold": test.threshold}
+            )
+        counts = self.loops if window is None else self.local
+        if not test.consistent and math.isfinite(chi2):
+            counts["rejected_by_chi2"] += 1
+            logger.info("edge %d -> %d rejected: chi2 increase %.2f > %.2f", j_old, k_new, chi2, test.threshold)
+            return False
+        if not test.consistent or bend > lc.max_odometry_bend_m:
+            counts["rejected_by_odometry"] += 1
+            logger.info("edge %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, bend)
+            return False
+        self._add_edge(j_old, k_new, T_jk, info, loop=True)
+        counts["accepted"] += 1
         self._history_start = len(self.frames)
-        for kf, T in zip(self.keyframes, res.T_wc):
+        for kf, T in zip(self.keyframes[lo:], res.T_wc):
             kf.T_wk = T
         # Fuse the back-end into the attitude: the newest keyframe's optimised rotation replaces
         # the stream's, and the same correction applies to the frames that follow.
         newest = self.keyframes[-1]
         self.R_corr = newest.T_wk[:3, :3] @ newest.R_att.T
         self.monitor.scalar("progress/loops_accepted", self.loops["accepted"], self.keyframes[-1].frame_index)
+        return True
 
     # ------------------------------------------------------------------ output
     def _output_keyframe_poses(self) -> Tensor:
@@ -480,7 +578,7 @@ class NISlam:
         out = {
             "keyframes": float(len(self.keyframes)),
             "loops_accepted": float(self.loops["accepted"]),
-            "loops_rejected": float(self.loops["rejected_by_odometry"]),
+            "loops_rejected": float(self.loops["rejected_by_odometry"] + self.loops["rejected_by_chi2"]),
             "fused_frames": float(self.fused),
             "prior_frames": float(self.motion_prior_frames),
         }
@@ -524,6 +622,8 @@ class NISlam:
             "motion_prior_frames": self.motion_prior_frames,
             "untracked": dict(self.untracked),
             "loops": dict(self.loops),
+            "loop_tests": list(self.loop_tests),
+            "local_window": dict(self.local),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,
         }
 
