@@ -158,8 +158,7 @@ def optimize_pose_graph(
         return H, g, cost.reshape(1)
 
     def evaluate(T: Tensor) -> Tensor:
-        r = edge_residuals(T, i, j, T_ij)
-        return (r * (information @ r[..., None])[..., 0]).sum().reshape(1)
+        return _cost(T, i, j, T_ij, information).reshape(1)
 
     node_problem = torch.zeros(N, dtype=torch.int64, device=T_wc.device)
     res = levenberg_marquardt_se3(T_wc, node_problem, 1, linearize, evaluate, mask, config)
@@ -181,8 +180,13 @@ def graph_cost(T_wc: Tensor, i: Tensor, j: Tensor, T_ij: Tensor, information: Te
     _check_edges(T_wc, i, j, T_ij, information)
     if not i.numel():
         return T_wc.new_zeros(())
-    r = edge_residuals(T_wc, i, j, T_ij.to(T_wc.dtype))
-    return (r * (information.to(T_wc.dtype) @ r[..., None])[..., 0]).sum()
+    return _cost(T_wc, i, j, T_ij.to(T_wc.dtype), information.to(T_wc.dtype))
+
+
+def _cost(T_wc: Tensor, i: Tensor, j: Tensor, T_ij: Tensor, information: Tensor) -> Tensor:
+    """() ``sum_e r_e^T Omega_e r_e``, inputs already checked and in one dtype."""
+    r = edge_residuals(T_wc, i, j, T_ij)
+    return (r * (information @ r[..., None])[..., 0]).sum()
 
 
 @dataclass(frozen=True)

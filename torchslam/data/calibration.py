@@ -42,6 +42,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import ConfigError, DataFormatError, ShapeError
 from ..geometry import PinholeCamera
 
@@ -305,8 +307,6 @@ def colour_to_depth_maps(depth_camera: PinholeCamera, colour_camera: PinholeCame
     of the depth camera; the colour camera (same centre and orientation) sees that ray at
     ``(fx_c x + cx_c, fy_c y + cy_c)``.
     """
-    import numpy as np
-
     d, c = depth_camera, colour_camera
     u = np.arange(d.width, dtype=np.float64)
     v = np.arange(d.height, dtype=np.float64)

@@ -31,7 +31,7 @@ from .correlator import (
     kernel_correlation,
     spectral_energy,
 )
-from .frontend import TrackResult, correlator_for, keyframe_filter, track_step
+from .frontend import TrackResult, correlator_for, kcc_channels, keyframe_filter, track_step
 from .fusion import DepthStatistic, DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
 from .ortho import (
     OrthoImages,
@@ -66,6 +66,7 @@ __all__ = [
     "find_peak",
     "fuse_keyframe",
     "grey_from_rgb",
+    "kcc_channels",
     "kcc_features",
     "kcc_predict",
     "kcc_response",

@@ -214,7 +214,7 @@ def _energy(x_hat: Tensor, width: int, weighted: bool = True) -> Tensor:
     return p.sum(dim=(-3, -2, -1)) / (H * width)
 
 
-def _box_sum(x: Tensor, k: int) -> Tensor:
+def box_sum(x: Tensor, k: int) -> Tensor:
     """Sum over the k x k window centred on each pixel of (B, C, H, W) images, zero outside (separable)."""
     H, W = x.shape[-2:]
     if k == 1:
@@ -293,7 +293,7 @@ def kcc_features(
             torch.mul(grey[:, None], m, out=xm[:, 0:1])
             torch.mul(depth[:, None], m, out=xm[:, 1:2])
             xm[:, 2:3] = m
-        sums = _box_sum(xm, fill_holes)  # (B, 3, H, W)
+        sums = box_sum(xm, fill_holes)  # (B, 3, H, W)
         num, den = sums[:, :2], sums[:, 2:]
         has = den > 0
         # x * m is x itself where valid; den counts pixels, so where(has, den, 1) is clamp_min(1).

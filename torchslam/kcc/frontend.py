@@ -3,7 +3,7 @@
 Two recipes live here and nowhere else:
 
 - the keyframe recipe (``keyframe_filter``): a keyframe's fused orthographic map becomes KCC
-  channels (``kcc_features``, windowed by ``apply_window``) and a trained filter (``kcc_train``);
+  channels (``kcc_channels``: ``kcc_features`` windowed by ``apply_window``) and a trained filter (``kcc_train``);
 - the tracking step (``track_step``): a frame's cloud is projected in the keyframe's attitude at
   the keyframe's resolution, matched against the filter (``kcc_predict``) and its depth shift
   taken from the well-matched pixels (``depth_translation``), NI-SLAM Eq. (4)-(21).
@@ -24,7 +24,7 @@ from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
 from .window import apply_window
 
-__all__ = ["TrackResult", "correlator_for", "keyframe_filter", "track_step"]
+__all__ = ["TrackResult", "correlator_for", "kcc_channels", "keyframe_filter", "track_step"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,16 @@ def correlator_for(cfg: KCCConfig | KernelCorrelator) -> KernelCorrelator:
     return KernelCorrelator(cfg, dtype=torch.float64)
 
 
+def kcc_channels(images: OrthoImages | KeyframeMap, cfg: KCCConfig) -> Tensor:
+    """(B, 2, H, W) KCC input of orthographic images: ``kcc_features`` windowed by ``apply_window``.
+
+    The one recipe for keyframe and frame alike (``cfg.channel_norm``, ``cfg.fill_holes``,
+    ``cfg.window``).
+    """
+    z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+    return apply_window(z, cfg.window)
+
+
 def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | KernelCorrelator) -> KCCFilter:
     """Train the correlator on keyframes: their channels (``kcc_features``), then ``kcc_train`` (Eq. (9)-(11)).
 
@@ -78,8 +88,7 @@ def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | K
     """
     corr = correlator_for(correlator)
     cfg = corr.cfg
-    z = kcc_features(kf_map.grey, kf_map.depth, kf_map.valid, cfg.channel_norm, cfg.fill_holes)
-    return corr.fit(apply_window(z, cfg.window))
+    return corr.fit(kcc_channels(kf_map, cfg))
 
 
 def track_step(
@@ -112,7 +121,7 @@ def track_step(
     k = corr.cfg
     size = (k.ortho_height, k.ortho_width)
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.dtype), resolution, size)
-    x = apply_window(kcc_features(fr.grey, fr.depth, fr.valid, k.channel_norm, k.fill_holes), k.window)
+    x = kcc_channels(fr, k)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)

@@ -4,7 +4,7 @@ A pair is a keyframe and a frame some steps later. Exactly as ``kcc.frontend.tra
 the keyframe's own cloud is projected orthographically at the resolution ``r_k`` chosen for it
 (``choose_resolution``), the frame's cloud is rotated into the keyframe's attitude
 (``R_wk^T R_wi``, here from ground truth) and projected at the same ``r_k``, and both become
-KCC channels (``kcc_features``). None of that depends on σ, λ or the soft arg-max temperature,
+KCC channels (``kcc_channels``). None of that depends on σ, λ or the soft arg-max temperature,
 so it is computed once (:class:`KCCPairs`); a training step only trains the correlators on the
 keyframe channels, correlates the frames and takes the soft arg-max, all batched over pairs.
 
@@ -33,9 +33,8 @@ from ..errors import ConfigError, ShapeError, check_float, check_shape
 from ..geometry import undistorted_rays
 from ..kcc import (
     KCCConfig,
-    apply_window,
     choose_resolution,
-    kcc_features,
+    kcc_channels,
     kcc_predict,
     kcc_train,
     orthographic_project,
@@ -156,8 +155,7 @@ def kcc_pairs_from_points(
     kf = orthographic_project(points_k, grey_k, valid_k, None, r, size)
     R_ki = (T_wk[:, :3, :3].transpose(1, 2) @ T_wi[:, :3, :3]).to(points_i.dtype)
     fr = orthographic_project(points_i, grey_i, valid_i, R_ki, r, size)
-    z = apply_window(kcc_features(kf.grey, kf.depth, kf.valid, cfg.channel_norm, cfg.fill_holes), cfg.window)
-    x = apply_window(kcc_features(fr.grey, fr.depth, fr.valid, cfg.channel_norm, cfg.fill_holes), cfg.window)
+    z, x = kcc_channels(kf, cfg), kcc_channels(fr, cfg)
     t = content_translation(T_wk.to(torch.float64), T_wi.to(torch.float64))[:, :2].to(points_k.dtype)
     return KCCPairs(z, x, r, t)
 

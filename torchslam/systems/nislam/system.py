@@ -57,6 +57,7 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...features import ORBConfig, extract_orb
 from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
+from ...kcc.correlator import box_sum
 from ...kcc import (
     KCCFilter,
     KeyframeMap,
@@ -664,19 +665,14 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
     Returns:
         (colour (3, H, W), has (H, W)) after filling.
     """
-    import torch.nn.functional as F
-
     colour, has = colour.clone(), has.clone()
-    H, W = has.shape
     for _ in range(rounds):
         todo = want & ~has
         if not bool(todo.any()):
             break
         w = has.to(colour.dtype)[None]
-        # 3x3 sums of the coloured pixels' colours and of their count (zero outside), separable.
-        x = F.pad(torch.cat([colour * w, w]), (1, 1, 1, 1))  # (4, H + 2, W + 2)
-        rows = x[:, :, 0:W] + x[:, :, 1 : W + 1] + x[:, :, 2 : W + 2]
-        sums = rows[:, 0:H] + rows[:, 1 : H + 1] + rows[:, 2 : H + 2]  # (4, H, W)
+        # 3x3 sums of the coloured pixels' colours and of their count (zero outside).
+        sums = box_sum(torch.cat([colour * w, w])[None], 3)[0]  # (4, H, W)
         total, count = sums[:3], sums[3]
         new = todo & (count > 0)
         if not bool(new.any()):
