@@ -31,7 +31,7 @@ from .correlator import (
     kernel_correlation,
     spectral_energy,
 )
-from .frontend import TrackResult, correlator_for, kcc_channels, keyframe_filter, track_step
+from .frontend import TrackResult, TrackSummary, correlator_for, kcc_channels, keyframe_filter, summarize, track_step
 from .fusion import DepthStatistic, DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
 from .ortho import (
     OrthoImages,
@@ -41,6 +41,7 @@ from .ortho import (
     rgbd_to_points,
     sample_grey,
     sample_grey_rotated,
+    sample_grey_warped,
 )
 from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
 from .window import Window, apply_window, kcc_window
@@ -58,6 +59,7 @@ __all__ = [
     "Peak",
     "Subpixel",
     "TrackResult",
+    "TrackSummary",
     "Window",
     "apply_window",
     "choose_resolution",
@@ -80,9 +82,11 @@ __all__ = [
     "rgbd_to_points",
     "sample_grey",
     "sample_grey_rotated",
+    "sample_grey_warped",
     "shift_image",
     "shift_variance",
     "soft_argmax",
     "spectral_energy",
+    "summarize",
     "track_step",
 ]

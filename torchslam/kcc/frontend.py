@@ -24,7 +24,7 @@ from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
 from .window import apply_window
 
-__all__ = ["TrackResult", "correlator_for", "kcc_channels", "keyframe_filter", "track_step"]
+__all__ = ["TrackResult", "TrackSummary", "correlator_for", "kcc_channels", "keyframe_filter", "summarize", "track_step"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,50 @@ class TrackResult:
     depth_ok: Tensor
     matched: Tensor
     response: Tensor
+
+
+@dataclass(frozen=True)
+class TrackSummary:
+    """The host-side numbers of one item of a ``TrackResult``: what decisions and poses need.
+
+    Read back from the device for a whole batch in one transfer (``summarize``); the values are
+    the result's own, in float64 (exact: the float32 ones widen without rounding).
+
+    Attributes:
+        t_content: (3,) float64 scene-content translation, metres (``TrackResult.t_content``).
+        variance: (3,) float64 its variances, m^2.
+        psr: peak-to-sidelobe ratio.
+        matched_fraction: fraction of the frame's valid pixels well matched.
+        depth_ok: some pixels were well matched.
+        index: (1, 2) int64 integer content shift ``(s_x, s_y)`` (``TrackResult.index``), on the host.
+    """
+
+    t_content: Tensor
+    variance: Tensor
+    psr: float
+    matched_fraction: float
+    depth_ok: bool
+    index: Tensor
+
+
+def summarize(res: TrackResult) -> list[TrackSummary]:
+    """Read a batch's host-side numbers back from the device in one transfer.
+
+    Returns:
+        One ``TrackSummary`` per item, in order.
+    """
+    f64 = torch.float64
+    packed = torch.cat(
+        [res.t_content.to(f64), res.variance.to(f64), res.psr.to(f64)[:, None], res.matched_fraction.to(f64)[:, None],
+         res.depth_ok.to(f64)[:, None], res.index.to(f64)],
+        dim=1,
+    ).cpu()  # (B, 11): the one synchronisation
+    index = packed[:, 9:11].to(torch.int64)
+    rows = packed[:, 6:9].tolist()
+    return [
+        TrackSummary(packed[b, 0:3], packed[b, 3:6], rows[b][0], rows[b][1], rows[b][2] > 0, index[b : b + 1])
+        for b in range(packed.shape[0])
+    ]
 
 
 def correlator_for(cfg: KCCConfig | KernelCorrelator) -> KernelCorrelator:
@@ -120,7 +164,7 @@ def track_step(
     corr = correlator_for(cfg)
     k = corr.cfg
     size = (k.ortho_height, k.ortho_width)
-    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.dtype), resolution, size)
+    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size)
     x = kcc_channels(fr, k)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..devices import is_host
 from ..errors import DTypeError, check_float, check_shape, parse_choice
 from ._select import where
 from .ortho import OrthoImages
@@ -85,8 +86,9 @@ def shift_image(image: Tensor, shift: Tensor, fill: float | bool = 0) -> Tensor:
     check_shape(shift, f"{image.shape[0]} 2", "shift")
     B, H, W = image.shape
     s = shift.round().long() if shift.is_floating_point() else shift.long()
-    if B == 1:
-        # One item: the valid part is a rectangle, copied as a slice (no index arithmetic).
+    if B == 1 and is_host(s):
+        # One item whose shift is on the host (reading it waits for no device): the valid part
+        # is a rectangle, copied as a slice (no index arithmetic).
         sx, sy = (int(v) for v in s[0].tolist())
         out = torch.full_like(image, fill)
         h, w = H - abs(sy), W - abs(sx)
@@ -95,6 +97,7 @@ def shift_image(image: Tensor, shift: Tensor, fill: float | bool = 0) -> Tensor:
                 :, max(0, sy) : max(0, sy) + h, max(0, sx) : max(0, sx) + w
             ]
         return out
+    s = s.to(image.device)
     rows = torch.arange(H, device=image.device)[None, :, None] + s[:, 1, None, None]  # (B, H, 1)
     cols = torch.arange(W, device=image.device)[None, None, :] + s[:, 0, None, None]  # (B, 1, W)
     inside = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)  # (B, H, W)
@@ -128,10 +131,10 @@ def _masked_lower_median(values: Tensor, mask: Tensor) -> Tensor:
 
     For one item the selected values are compacted and ``kthvalue`` picks the order statistic in
     linear time, where ``nanmedian`` over the whole image with the rest set to NaN sorts; batches
-    use the latter.
+    use the latter, and so does one item off the host (the compaction reads its size back).
     """
     B = values.shape[0]
-    if B == 1:
+    if B == 1 and is_host(values):
         sel = values.reshape(-1)[mask.reshape(-1)]
         if sel.numel() == 0:
             return values.new_zeros(1)
@@ -226,8 +229,9 @@ def depth_translation(
     diff = xd - zd.to(xd.dtype)
     candidate = xv & zv & ((xg - zg.to(xg.dtype)).abs() < T_c)
     B = diff.shape[0]
-    if median_center and statistic is DepthStatistic.MEDIAN and B == 1:
-        # Both medians from one compaction of the candidates (see ``_centred_medians``).
+    if median_center and statistic is DepthStatistic.MEDIAN and B == 1 and is_host(diff):
+        # Both medians from one compaction of the candidates (see ``_centred_medians``), which
+        # reads sizes back: on the host only (on an accelerator it would wait for the device).
         center, t_z, matched = _centred_medians(diff, candidate, T_d)
         m = matched.to(diff.dtype)
         count = matched.sum(dim=(1, 2))

@@ -38,6 +38,7 @@ __all__ = [
     "rgbd_to_points",
     "sample_grey",
     "sample_grey_rotated",
+    "sample_grey_warped",
 ]
 
 # ITU-R BT.601 luma weights: the usual grey conversion for 8-bit colour cameras.
@@ -283,8 +284,40 @@ def sample_grey_rotated(
         As ``sample_grey``: (B, H*W) grey (0 where not valid) and (B, H*W) bool validity.
 
     Raises:
-        ShapeError: an item's rotation turns part of the image behind the camera and no
+        InvalidValueError: an item's rotation turns part of the image behind the camera and no
             ``points`` were given.
+    """
+    grey_image = _grey_image(rgb, grey_image)
+    grey, ok, behind = sample_grey_warped(rgb, valid, rotation, intrinsics, rays, grey_image, distortion, step)
+    if bool(behind.any()):  # reads the flags back: one synchronisation (``sample_grey_warped`` has none)
+        if points is None:
+            raise InvalidValueError("rotation: turns part of the image behind the camera; pass the points (or use sample_grey)")
+        idx = behind.nonzero().flatten()
+        intr = intrinsics.to(grey.dtype).expand(rgb.shape[0], 4)
+        g, v = sample_grey(rgb[idx], points[idx], valid[idx], rotation[idx], intr[idx], grey_image[idx], distortion)
+        grey, ok = grey.index_copy(0, idx, g.to(grey.dtype)), ok.index_copy(0, idx, v)
+    return grey, ok
+
+
+def sample_grey_warped(
+    rgb: Tensor,
+    valid: Tensor,
+    rotation: Tensor,
+    intrinsics: Tensor,
+    rays: Tensor | None = None,
+    grey_image: Tensor | None = None,
+    distortion: tuple[float, ...] | None = None,
+    step: int = 8,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The warp of ``sample_grey_rotated`` alone, which never waits for the device.
+
+    Arguments as ``sample_grey_rotated``'s (without ``points``).
+
+    Returns:
+        grey: (B, H*W) grey at the warped positions (0 where not valid).
+        valid: (B, H*W) bool validity.
+        behind: (B,) bool, items whose rotation turns part of the image behind the camera: their
+            warp is meaningless and the caller samples them per point (``sample_grey``).
     """
     dims: dict[str, int] = {}
     check_shape(rgb, "B 3 H W", "rgb", dims)
@@ -314,25 +347,19 @@ def sample_grey_rotated(
         rx, ry = node[0].expand(B, hc, wc), node[1].expand(B, hc, wc)
     # The nodes' rays as points at unit depth: a pure rotation moves the whole ray alike.
     nodes = torch.stack([rx.reshape(B, -1), ry.reshape(B, -1), torch.ones_like(rx).reshape(B, -1)], dim=-1)
-    R = rotation.to(dtype)
+    R = rotation.to(dev, dtype)
     if distortion is not None and any(c != 0.0 for c in distortion):
         gx, gy, front = _project_distorted(nodes, R, intr, distortion, H, W)
     else:
         gx, gy, front = _project_pinhole(nodes, R, intr, H, W)
     behind = ~front.all(dim=1)  # (B,) items the warp cannot serve
-    if bool(behind.any()) and points is None:
-        raise InvalidValueError("rotation: turns part of the image behind the camera; pass the points (or use sample_grey)")
     coarse = torch.stack([gx, gy], dim=1).view(B, 2, hc, wc)
     grid = F.interpolate(coarse, size=(H, W), mode="bilinear", align_corners=True)  # (B, 2, H, W)
     inside = ((grid[:, 0].abs() <= 1) & (grid[:, 1].abs() <= 1)).flatten(1)
     grey_image = _grey_image(rgb, grey_image)
     ok = valid & inside
     grey = _sample_grey_at(grey_image, grid.permute(0, 2, 3, 1), ok, H, W, dtype)
-    if bool(behind.any()):
-        idx = behind.nonzero().flatten()
-        g, v = sample_grey(rgb[idx], points[idx], valid[idx], rotation[idx], intr[idx], grey_image[idx], distortion)
-        grey, ok = grey.index_copy(0, idx, g.to(grey.dtype)), ok.index_copy(0, idx, v)
-    return grey, ok
+    return grey, ok, behind
 
 
 # (rays tensor, (2, hc, wc) node rays) per (rays identity and version, dtype, node lattice).

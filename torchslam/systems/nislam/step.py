@@ -33,7 +33,10 @@ from torch import Tensor
 
 from ...data.frame import Frame
 from ...errors import ConfigError, ShapeError
-from ...kcc import KCCFilter, KernelCorrelator, KeyframeMap, TrackResult, rgbd_to_points, sample_grey_rotated, track_step
+from ...kcc import (
+    KCCFilter, KernelCorrelator, KeyframeMap, TrackResult, TrackSummary, rgbd_to_points, sample_grey, sample_grey_warped,
+    summarize, track_step,
+)
 from ..base import StepReport
 from ..batching import groups, row, stack_dataclass, stack_rows
 
@@ -147,15 +150,18 @@ class PhasedSystem(Protocol):
 
     def start_match(self, input: FrameInput, cloud: Cloud) -> MatchRequest | None: ...
 
-    def apply_match(self, request: MatchRequest, res: TrackResult, kf_filter: KCCFilter) -> MatchRequest | None: ...
+    def apply_match(
+        self, request: MatchRequest, res: TrackResult, kf_filter: KCCFilter, summary: TrackSummary
+    ) -> MatchRequest | None: ...
 
 
 def backproject(inputs: list[FrameInput]) -> list[Cloud]:
     """Back-project frames of one camera group (equal ``batch_key``) in one call.
 
     Grey values are taken at the colour instant where an input asks for it: a rotation-only warp
-    per image (``sample_grey_rotated``, a per-point projection only for an item whose rotation
-    turns part of the image behind the camera).
+    per image (``sample_grey_warped``; a per-point projection, ``sample_grey``, only for an item
+    whose rotation turns part of the image behind the camera). The valid-point counts and those
+    items are read back from the device together, in one transfer.
 
     Returns:
         One ``Cloud`` per input, rows of the batch.
@@ -164,34 +170,52 @@ def backproject(inputs: list[FrameInput]) -> list[Cloud]:
     rgb = stack_rows([w.rgb for w in inputs])
     depth = stack_rows([w.depth for w in inputs])
     intrinsics = stack_rows([w.camera.intrinsics for w in inputs])
-    points, grey, valid = rgbd_to_points(rgb, depth, intrinsics, rays=cam.rays)
+    points, grey0, valid0 = rgbd_to_points(rgb, depth, intrinsics, rays=cam.rays)
+    grey, valid = grey0, valid0
     need = [k for k, w in enumerate(inputs) if w.resample_grey]
+    behind = None
     if need:
-        # depth camera -> colour camera, from the attitude stream at the two instants
-        R_cd = torch.stack([inputs[k].R_att[1].T @ inputs[k].R_att[0] for k in need]).to(points.dtype)
+        # depth camera -> colour camera, from the attitude stream (host) at the two instants
+        R_cd = torch.stack([inputs[k].R_att[1].T @ inputs[k].R_att[0] for k in need]).to(points.device, points.dtype)
+        every = len(need) == len(inputs)
+        idx = None if every else torch.tensor(need, device=points.device)
 
-        def warp(rgb, points, valid, intrinsics, grey):
-            return sample_grey_rotated(
-                rgb, valid, R_cd, intrinsics, rays=cam.rays, grey_image=grey, distortion=cam.distortion, points=points
-            )
+        def rows(x: Tensor) -> Tensor:
+            return x if idx is None else x[idx]
 
-        if len(need) == len(inputs):
-            grey, valid = warp(rgb, points, valid, intrinsics, grey)
+        g, v, b = sample_grey_warped(
+            rows(rgb), rows(valid0), R_cd, rows(intrinsics), rays=cam.rays, grey_image=rows(grey0), distortion=cam.distortion
+        )
+        if idx is None:
+            grey, valid, behind = g, v, b
         else:
-            idx = torch.tensor(need, device=points.device)
-            g, v = warp(rgb[idx], points[idx], valid[idx], intrinsics[idx], grey[idx])
             grey, valid = grey.index_copy(0, idx, g), valid.index_copy(0, idx, v)
-    counts = valid.sum(dim=1).tolist()
-    return [Cloud(points[k : k + 1], grey[k : k + 1], valid[k : k + 1], int(counts[k])) for k in range(len(inputs))]
+            behind = torch.zeros(len(inputs), dtype=torch.bool, device=points.device).index_copy(0, idx, b)
+    counts = valid.sum(dim=1)
+    if behind is None:
+        host = counts.tolist()
+    else:
+        host = torch.cat([counts, behind.to(counts.dtype)]).tolist()  # one transfer for both
+        flags, host = host[len(inputs):], host[: len(inputs)]
+        back = [k for k, f in enumerate(flags) if f]
+        if back:  # rare: those items are sampled per point, and their counts read again
+            idx = torch.tensor(back, device=points.device)
+            R_back = torch.stack([inputs[k].R_att[1].T @ inputs[k].R_att[0] for k in back]).to(points.device, points.dtype)
+            g, v = sample_grey(rgb[idx], points[idx], valid0[idx], R_back, intrinsics[idx], grey0[idx], cam.distortion)
+            grey, valid = grey.index_copy(0, idx, g.to(grey.dtype)), valid.index_copy(0, idx, v)
+            for k, n in zip(back, v.sum(dim=1).tolist()):
+                host[k] = n
+    return [Cloud(points[k : k + 1], grey[k : k + 1], valid[k : k + 1], int(host[k])) for k in range(len(inputs))]
 
 
-def match(requests: list[MatchRequest]) -> tuple[list[TrackResult], list[KCCFilter]]:
+def match(requests: list[MatchRequest]) -> tuple[list[TrackResult], list[KCCFilter], list[TrackSummary]]:
     """One ``track_step`` for requests of one group (equal ``batch_key``), each against its own keyframe.
 
     Returns:
-        Per request its ``TrackResult`` and its filter as a row of the stacked batch: kept as the
-        keyframe's filter, the next step stacks it without a copy. (The maps are not kept: most
-        frames fuse into theirs, which replaces it anyway.)
+        Per request its ``TrackResult``, its filter as a row of the stacked batch (kept as the
+        keyframe's filter, the next step stacks it without a copy; the maps are not kept: most
+        frames fuse into theirs, which replaces it anyway) and its host-side numbers, read back
+        for the whole group in one transfer (``summarize``).
     """
     kf_filter = stack_dataclass([r.kf_filter for r in requests])
     res = track_step(
@@ -204,9 +228,10 @@ def match(requests: list[MatchRequest]) -> tuple[list[TrackResult], list[KCCFilt
         torch.cat([r.resolution for r in requests]),
         requests[0].correlator,
     )
+    summaries = summarize(res)
     if len(requests) == 1:
-        return [res], [kf_filter]
-    return [row(res, k) for k in range(len(requests))], [row(kf_filter, k) for k in range(len(requests))]
+        return [res], [kf_filter], summaries
+    return [row(res, k) for k in range(len(requests))], [row(kf_filter, k) for k in range(len(requests))], summaries
 
 
 def track_frames(systems: list[PhasedSystem], frames: list[Frame], max_batch: int | None = None) -> StepReport:
@@ -310,7 +335,7 @@ class _Step:
             pending = [i for i in chunk if requests.get(i) is not None]
             retries = {}
             for group in groups(pending, lambda i: requests[i].batch_key):
-                results: dict[int, tuple[TrackResult, KCCFilter]] = {}
+                results: dict[int, tuple[TrackResult, KCCFilter, TrackSummary]] = {}
                 self.batched(group, "kcc", lambda items: list(zip(*match([requests[i] for i in items]))), results)
                 for i in group:
                     if i in results:

@@ -62,12 +62,14 @@ from ...kcc import (
     KCCFilter,
     KeyframeMap,
     TrackResult,
+    TrackSummary,
     choose_resolution,
     correlator_for,
     fuse_keyframe,
     keyframe_filter,
     keyframe_map,
     orthographic_project,
+    summarize,
     track_step,
 )
 from ...loop import MILDConfig, MILDDatabase
@@ -245,23 +247,28 @@ class NISlam:
             return None
         return self._request(input, cloud, R_wi, retried=False)
 
-    def apply_match(self, request: MatchRequest, res: TrackResult, kf_filter: KCCFilter) -> MatchRequest | None:
+    def apply_match(
+        self, request: MatchRequest, res: TrackResult, kf_filter: KCCFilter, summary: TrackSummary
+    ) -> MatchRequest | None:
         """Phase 3: the match against the keyframe, judged by the keyframe policy.
 
         Args:
             request: the match asked for (``start_match`` or a retry).
-            res: its result (B = 1).
+            res: its result (B = 1), on the device.
             kf_filter: the keyframe's filter as the scheduler holds it (a row of its batch).
+            summary: the result's host-side numbers (read back by the scheduler for its whole
+                batch at once): every decision and pose here uses them, so nothing waits for
+                the device.
 
         Returns:
             The retry (against a keyframe made from the last well-tracked frame) when the match
             is lost and a retry is possible; else None: the frame is concluded.
         """
         self.keyframes[-1].filter = kf_filter
-        T_wi = self._pose(res, request.R_wi)
+        T_wi = self._pose(summary.t_content, request.R_wi)
         can_retry = not request.retried and self._well_tracked is not None
-        psr = float(res.psr[0])
-        verdict = self.policy.decide(psr, bool(res.depth_ok[0]), T_wi[:3, 3], request.p_pred, can_retry)
+        psr = summary.psr
+        verdict = self.policy.decide(psr, summary.depth_ok, T_wi[:3, 3], request.p_pred, can_retry)
         if verdict.action is Action.RETRY:
             # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
             # so the last well-tracked frame becomes the keyframe and this frame is matched again.
@@ -286,7 +293,7 @@ class NISlam:
                 T_wi = se3_from_Rt(request.R_wi, request.p_pred)
                 self.motion_prior_frames += 1
             # Nothing better to match against: the frame starts a keyframe of its own.
-            self._new_keyframe(_Placed(request.input, request.cloud, T_wi, res.variance[0]), previous=kf)
+            self._new_keyframe(_Placed(request.input, request.cloud, T_wi, summary.variance), previous=kf)
             self._well_tracked = None
         else:
             if verdict.fuse:
@@ -295,10 +302,10 @@ class NISlam:
                 # frame cost. Fusion runs per sequence: on B = 1 its integer shifts are slice
                 # copies, cheaper per frame than the batched gather.
                 t0 = self._tic()
-                kf.map = fuse_keyframe(kf.map, res.frame, res.index, res.t_content[:, 2], res.matched, res.psr, self.policy.T_M)
+                kf.map = fuse_keyframe(kf.map, res.frame, summary.index, res.t_content[:, 2], res.matched, res.psr, self.policy.T_M)
                 self.fused += 1
                 self._toc("fusion", t0)
-            self._well_tracked = _Placed(request.input, request.cloud, T_wi, res.variance[0])
+            self._well_tracked = _Placed(request.input, request.cloud, T_wi, summary.variance)
         self._record(request.input.frame, T_wi, prior=verdict.use_prior)
         return None
 
@@ -311,12 +318,12 @@ class NISlam:
             resolution=kf.resolution, correlator=self.correlator, retried=retried,
         )
 
-    def _pose(self, res: TrackResult, R_wi: Tensor) -> Tensor:
-        """(4, 4) pose of a frame matched against the current keyframe."""
+    def _pose(self, t_content: Tensor, R_wi: Tensor) -> Tensor:
+        """(4, 4) pose of a frame matched against the current keyframe, from its (3,) host ``t_content``."""
         kf = self.keyframes[-1]
         R_wk = kf.T_wk[:3, :3]
         # The scene content moved by t, so the camera sits at -t in the keyframe attitude frame.
-        p_k = -res.t_content[0].to(torch.float64)
+        p_k = -t_content.to(torch.float64)
         return se3_from_Rt(R_wi, kf.T_wk[:3, 3] + R_wk @ p_k)
 
     def _predicted_position(self, t: float) -> Tensor | None:
@@ -481,11 +488,10 @@ class NISlam:
         c = kf.cloud
         res = track_step(c.points, c.grey, c.valid, R_jk[None], old.map, filt, old.resolution, self.correlator)
         old.filter = None  # keep memory flat: old keyframes' filters are rebuilt on demand
-        psr = float(res.psr[0])
-        if psr < lc.min_psr or not bool(res.depth_ok[0]) or float(res.matched_fraction[0]) < lc.min_matched:
+        m = summarize(res)[0]
+        if m.psr < lc.min_psr or not m.depth_ok or m.matched_fraction < lc.min_matched:
             return None
-        p = -res.t_content[0].to(torch.float64)
-        return _LoopEdge(cand, se3_from_Rt(R_jk, p), res.variance[0], psr)
+        return _LoopEdge(cand, se3_from_Rt(R_jk, -m.t_content), m.variance, m.psr)
 
     def _edges(self):
         return (
