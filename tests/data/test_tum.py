@@ -764,3 +764,19 @@ def test_synth_folder_imu_reads_back_as_the_in_memory_stream(tmp_path):
     # or a body frame other than the camera's would be tens of degrees off).
     tilt, yaw = attitude_errors(R_tum, mem.groundtruth.T_wc[:, :3, :3])
     assert float(tilt.abs().max()) < math.radians(0.5) and float(yaw.abs().max()) < math.radians(0.5)
+
+
+def test_pinned_frames_need_cuda(shared_data):
+    import torch
+
+    from torchslam.errors import ConfigError
+
+    if torch.cuda.is_available():
+        seq = TUMSequence(shared_data / "tum_fr1_xyz", end=2, pin_memory=True)
+        assert seq[0].rgb.is_pinned() and seq[0].depth.is_pinned()
+        torch.testing.assert_close(seq[0].rgb, TUMSequence(shared_data / "tum_fr1_xyz", end=2)[0].rgb, atol=0, rtol=0)
+    else:
+        with pytest.raises(ConfigError, match="pin_memory"):
+            TUMSequence(shared_data / "tum_fr1_xyz", end=2, pin_memory=True)
+    with pytest.raises(ConfigError, match="pin_memory"):
+        TUMSequence(shared_data / "tum_fr1_xyz", end=2, pin_memory="yes")

@@ -218,7 +218,7 @@ def test_an_interrupted_run_writes_the_partial_run_and_exits_130(tmp_path, capsy
     from torchslam.app import run as run_mod
 
     real = run_mod.load_sequence
-    monkeypatch.setattr(run_mod, "load_sequence", lambda data, cfg: EditedSequence(real(data, cfg), interrupt_at(5)))
+    monkeypatch.setattr(run_mod, "load_sequence", lambda data, cfg, device="cpu": EditedSequence(real(data, cfg, device), interrupt_at(5)))
     out = tmp_path / "run"
     assert _run(out, "--no-tensorboard") == 130
     assert "interrupted" in capsys.readouterr().out

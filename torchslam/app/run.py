@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+import torch
+
 from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
@@ -134,13 +136,17 @@ def resolve_config(
     return system_cfg, data_cfg, resolved
 
 
-def load_sequence(data: str, cfg: DataConfig) -> Sequence:
-    """Open ``data``: a TUM-layout folder, or ``synthetic`` for the built-in generated sequence."""
+def load_sequence(data: str, cfg: DataConfig, device: str = "cpu") -> Sequence:
+    """Open ``data``: a TUM-layout folder, or ``synthetic`` for the built-in generated sequence.
+
+    For a CUDA ``device`` the frames are decoded into page-locked memory (``TUMSequence``'s
+    ``pin_memory``): each is copied to the GPU once, without blocking the host.
+    """
     if data == SYNTHETIC:
         return generate_sequence(cfg.synthetic)
     return TUMSequence(
         data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch,
-        register_colour=cfg.register_colour,
+        register_colour=cfg.register_colour, pin_memory=torch.device(device).type == "cuda",
     )
 
 
@@ -179,7 +185,7 @@ def run(
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     out = Path(options.out)
     prepare_run_folder(out, overwrite=options.overwrite)
-    sequence = load_sequence(options.data, data_cfg)
+    sequence = load_sequence(options.data, data_cfg, options.device)
     monitor: Monitor = TensorBoardMonitor(out) if options.tensorboard else Monitor()
     try:
         system = spec.build(system_cfg, device=options.device, monitor=monitor)

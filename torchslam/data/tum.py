@@ -260,6 +260,8 @@ class TUMSequence:
             calibration gives the colour camera's own intrinsics (``calibration.colour_camera``:
             a ``colour`` line of ``calibration.txt`` or the 7-Scenes preset); False keeps the
             colour image as it is.
+        pin_memory: decode into page-locked host memory, so that a CUDA system's copy of each
+            frame to the GPU runs without staging and without blocking the host (needs CUDA).
         gt_max_gap: largest spacing of the two ground-truth poses bracketing a frame across
             which its pose is interpolated, seconds.
 
@@ -309,6 +311,7 @@ class TUMSequence:
         invalid_depth: Iterable[int] = (0, 65535),
         gt_max_gap: float = 0.2,
         register_colour: bool = True,
+        pin_memory: bool = False,
     ) -> None:
         root = Path(root)
         max_gap = _check_seconds(max_gap, "max_gap", allow_zero=True)
@@ -318,6 +321,11 @@ class TUMSequence:
         if end is not None:
             end = _check_int(end, "end", 1)
         self.prefetch = _check_int(prefetch, "prefetch", 0)
+        if not isinstance(pin_memory, bool):
+            raise ConfigError(f"pin_memory: expected True or False, got {pin_memory!r}")
+        if pin_memory and not torch.cuda.is_available():
+            raise ConfigError("pin_memory: page-locked frames are for copies to a CUDA device, and none is available")
+        self.pin_memory = pin_memory
         try:
             invalid = tuple(int(v) for v in invalid_depth)
         except (TypeError, ValueError) as exc:
@@ -589,11 +597,14 @@ class TUMSequence:
         for value in self._invalid_nonzero:
             metres[raw == value] = 0.0
         T_wc = self._T_wc[i].clone() if bool(self.gt_valid[i]) else None
+        rgb, depth = torch.from_numpy(rgb_np), torch.from_numpy(metres)[None]  # (3, H, W), (1, H, W)
+        if self.pin_memory:
+            rgb, depth = rgb.pin_memory(), depth.pin_memory()
         return Frame(
             index=i,
             timestamp=float(self.timestamps[i]),
-            rgb=torch.from_numpy(rgb_np),
-            depth=torch.from_numpy(metres)[None],  # (1, H, W)
+            rgb=rgb,
+            depth=depth,
             T_wc=T_wc,
             depth_timestamp=float(self.depth_timestamps[i]),
         )

@@ -387,7 +387,7 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
         try:
             if src.error is not None:
                 raise ConfigError(src.error)
-            seq = generate_sequence(src.synthetic) if src.synthetic is not None else load_sequence(src.spec, plan.data_cfg)
+            seq = generate_sequence(src.synthetic) if src.synthetic is not None else load_sequence(src.spec, plan.data_cfg, plan.device)
         except Exception as exc:  # noqa: BLE001 -- any error of one source is that source's failed row
             clear_files(stale[src.name])
             emit(src, summary_row(src, "failed", message=_write_error(folder, exc)))

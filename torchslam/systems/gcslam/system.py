@@ -152,8 +152,9 @@ class GCSlam:
         cfg = self.cfg
         clock = _Stopwatch(self.stage_ms)
         self.last_frame_index = frame.index
-        rgb = frame.rgb.to(self.device)
-        depth = frame.depth.to(self.device)
+        # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
+        rgb = frame.rgb.to(self.device, non_blocking=True)
+        depth = frame.depth.to(self.device, non_blocking=True)
         if int((depth > 0).sum()) < cfg.min_valid_depth:
             self.counts["no_depth"] += 1
             self._record_lost(frame)

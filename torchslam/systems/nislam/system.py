@@ -220,8 +220,9 @@ class NISlam:
         if not bool(ok[0]):
             self.untracked["attitude_gap"] += 1
             return None
-        rgb = frame.rgb.to(self.device)[None]
-        depth = frame.depth.to(self.device)[None]
+        # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
+        rgb = frame.rgb.to(self.device, non_blocking=True)[None]
+        depth = frame.depth.to(self.device, non_blocking=True)[None]
         if cfg.pixel_stride > 1:
             rgb = rgb[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
             depth = depth[..., :: cfg.pixel_stride, :: cfg.pixel_stride]
