@@ -28,6 +28,7 @@ LAYERS: dict[str, int] = {
     "torchslam.threads": 0,
     "torchslam._moved": 0,
     "torchslam.cache": 0,
+    "torchslam.diagnostics": 0,
     "torchslam.config": 1,
     "torchslam.geometry": 2,
     "torchslam.optim": 3,
