@@ -129,3 +129,16 @@ def test_exception_inside_region_restores_modes(x):
     with count_syncs() as after:
         x.sum()
     assert after.count == 0
+
+
+def test_host_copy_and_its_read_count_once(x):
+    with count_syncs() as syncs:
+        x.cpu().numpy()
+        np.asarray(x.detach().cpu())
+        x.to("cpu").tolist()
+    assert [e.op for e in syncs.events] == ["Tensor.cpu", "Tensor.cpu", "Tensor.to"]
+    with count_syncs() as syncs:
+        y = x.cpu()
+        x.sum()
+        y.numpy()  # not right after the copy: the counter pairs a read only with the call before
+    assert syncs.count == 2

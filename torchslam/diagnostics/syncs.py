@@ -23,14 +23,17 @@ were on a CUDA device. Two interposition layers are used together:
   and ``_local_scalar_dense`` reached from C++ (a 0-dim tensor passed as a Python number).
 
 An operation recorded at the Python level is not recorded again for the ATen operators it runs
-(``.item()`` dispatches ``_local_scalar_dense``), so every synchronisation counts once.
+(``.item()`` dispatches ``_local_scalar_dense``), and reading a host copy right after making it
+(``x.cpu().numpy()``, ``np.asarray(x.cpu())``) is part of that copy, so every synchronisation
+counts once.
 
 Conventions and limits:
     ``.to(device)`` counts when its target is the CPU and either the tensor is elsewhere or the
     target was written as a string (``.to("cpu")``): on a CPU run ``t.to(x.device)`` with ``x``
     on the CPU is a no-op that stays one on an accelerator, so it does not count. Likewise
     ``torch.tensor(data)`` without a ``device`` builds a host tensor and does not count.
-    ``t[mask] = scalar`` runs ``masked_fill_`` on CUDA and does not count. Operations inside
+    ``t[mask] = scalar`` runs ``masked_fill_`` on CUDA and does not count. On the CPU ``x.cpu()``
+    returns ``x`` itself, so ``x.cpu()`` followed at once by ``x.item()`` counts once. Operations inside
     CUDA kernels' own implementations (a cuSOLVER info check that is not an ATen operator) are
     not seen.
 
@@ -157,6 +160,10 @@ _ALWAYS = {
 }
 
 
+# Reads of a host tensor: no synchronisation of their own right after a copy to the host.
+_READS_HOST = {T.numpy, T.__array__, T.tolist, T.item, T.__bool__, T.__int__, T.__float__, T.__index__}
+
+
 def _is_cpu(device) -> bool:
     return device is not None and torch.device(device).type == "cpu"
 
@@ -236,17 +243,24 @@ class _FunctionLevel(TorchFunctionMode):
         super().__init__()
         self.report = report
         self.stack: list[tuple[str, bool]] = []  # (Python-level op, recorded) being run
+        self.host_copy = None  # result of the last call if it was a recorded copy to the host
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         hit = _python_level(func, args, kwargs)
         if hit is not None:
-            self.report.events.append(SyncEvent(hit[0], hit[1], _caller()))
+            # ``x.cpu().numpy()``: reading the host copy made just before is part of that copy
+            if not (func in _READS_HOST and args and args[0] is self.host_copy):
+                self.report.events.append(SyncEvent(hit[0], hit[1], _caller()))
+        self.host_copy = None
         self.stack.append((_display_name(func), hit is not None))
         try:
-            return func(*args, **kwargs)
+            out = func(*args, **kwargs)
         finally:
             self.stack.pop()
+        if hit is not None and hit[1] == SyncKind.COPY_TO_HOST:
+            self.host_copy = out
+        return out
 
     def recorded(self) -> bool:
         """Whether a Python-level op being run was recorded already."""

@@ -209,6 +209,7 @@ class BlockCholeskySymbolic:
     _child_ud: list = field(repr=False)
     _direct: list = field(repr=False)
     _node_front: np.ndarray = field(repr=False)
+    _front_root: np.ndarray = field(repr=False)
     _num_edges: int = field(repr=False)
     _edge_keep: np.ndarray = field(repr=False)
     _device_cache: dict = field(default_factory=dict, repr=False)
@@ -240,6 +241,10 @@ class BlockCholeskySymbolic:
                     for kids, lst in zip(self._children, self._child_ud)
                 ],
                 "node_front": t(self._node_front),
+                # elimination-tree root of each front, and of each node's front (fixed nodes:
+                # the spare slot F, never bad)
+                "front_root": t(self._front_root),
+                "node_root": t(np.append(self._front_root, self.num_fronts)[self._node_front]),
             }
         return self._device_cache[key]
 
@@ -594,6 +599,11 @@ def analyze(
     parent_pos = np.array([pos_of[sn_parent[t]] if sn_parent[t] >= 0 else -1 for t in post], dtype=np.int64)
     nf_full = np.full(num_nodes, -1, dtype=np.int64)
     nf_full[free_ids] = node_front
+    # root of each front's elimination tree: parents come after their children
+    root = np.arange(ns, dtype=np.int64)
+    for k in range(ns - 1, -1, -1):
+        if parent_pos[k] >= 0:
+            root[k] = root[parent_pos[k]]
     return BlockCholeskySymbolic(
         num_nodes=num_nodes,
         block_size=b,
@@ -611,6 +621,7 @@ def analyze(
         _child_ud=child_ud,
         _direct=direct,
         _node_front=nf_full,
+        _front_root=root,
         _num_edges=e_all,
         _edge_keep=edge_keep,
     )
@@ -663,6 +674,21 @@ class BlockCholeskyFactor:
             xs = torch.linalg.solve_triangular(self._L_ss[k].transpose(0, 1), v, upper=True)
             x.index_copy_(0, idx["s"][k], xs[:, 0])
         return x.reshape(rhs.shape)
+
+
+def _tree_ok(infos: list[Tensor], idx: dict, sym: BlockCholeskySymbolic) -> Tensor:
+    """(N,) bool: the node's elimination tree factored without a failed pivot (fixed nodes True).
+
+    Args:
+        infos: per front, the () or (k,) ``cholesky_ex`` info of its pivot block(s), in
+            elimination order (or one (F,) tensor).
+    """
+    if not infos:
+        return torch.ones(sym.num_nodes, dtype=torch.bool, device=idx["node_root"].device)
+    info = torch.cat([i.reshape(-1) for i in infos]) if isinstance(infos, list) else infos
+    bad = torch.zeros(sym.num_fronts + 1, dtype=torch.int32, device=info.device)
+    bad.index_add_(0, idx["front_root"], (info != 0).to(torch.int32))
+    return bad[idx["node_root"]] == 0
 
 
 def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -> BlockCholeskyFactor:
@@ -756,20 +782,8 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
             L_us.append(F.new_zeros(0, m))
     # A failed pivot (not positive definite) spoils its whole elimination tree: upwards through
     # the Schur complements, downwards through back substitution. Garbage stays inside that
-    # tree because trees share nothing.
-    bad = (torch.stack(infos) != 0).cpu().numpy() if infos else np.zeros(0, dtype=bool)
-    parent = sym._parent
-    for k in range(sym.num_fronts):
-        if bad[k] and parent[k] >= 0:
-            bad[parent[k]] = True
-    for k in reversed(range(sym.num_fronts)):
-        if parent[k] >= 0 and bad[parent[k]]:
-            bad[k] = True
-    node_front = sym._node_front
-    ok_np = np.ones(sym.num_nodes, dtype=bool)
-    has = node_front >= 0
-    ok_np[has] = ~bad[node_front[has]]
-    ok = torch.as_tensor(ok_np, device=dev)
+    # tree because trees share nothing. Decided on the device: no synchronisation.
+    ok = _tree_ok(infos, idx, sym)
     return BlockCholeskyFactor(sym, ok, L_ss, L_us)
 
 
