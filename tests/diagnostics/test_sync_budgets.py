@@ -38,11 +38,12 @@ def per_iteration(run, iterations: int) -> list[tuple[int, str]]:
     return out
 
 
-def test_fastgo_iteration_at_most_two_syncs():
+@pytest.mark.parametrize("ordering, schedule", [("band", "front"), ("nested", "level")])
+def test_fastgo_iteration_at_most_two_syncs(ordering, schedule):
     prob = loop_route_problem(24, noise=0.005, seed=1)
 
     def run(k):
-        cfg = FastGOConfig(iterations=k, tol=-1.0, step_tol=-1.0)
+        cfg = FastGOConfig(iterations=k, tol=-1.0, step_tol=-1.0, ordering=ordering, schedule=schedule)
         return optimize(prob.T_init, prob.pairs, prob.stats, config=cfg)
 
     counts = per_iteration(run, 4)

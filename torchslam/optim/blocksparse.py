@@ -76,10 +76,13 @@ class Schedule(str, enum.Enum):
     """How the numeric factorisation and the solves walk the elimination tree.
 
     ``FRONT``: one supernode (front) at a time, in elimination order: dense calls per front,
-    in-place assembly without autograd. ``LEVEL``: all fronts of one level of the elimination
-    tree at once, padded to a common size: batched calls per level, so the number of calls
-    grows with the tree's depth rather than with the number of fronts (accelerators, where
-    each call costs a launch). Both give the same factor up to round-off.
+    in-place assembly without autograd. ``LEVEL``: the fronts of one level of the elimination
+    tree at once, batched by size class and padded to a common size: the number of calls
+    grows with the tree's depth (times a few size classes) rather than with the number of
+    fronts, for accelerators, where each call costs a launch. Only nested-dissection orders
+    have shallow trees; a band order's tree is a chain (depth = fronts). Both schedules give
+    the same factor up to round-off; on the CPU ``FRONT`` is faster
+    (``scripts/bench_cholesky_schedule.py``).
     """
 
     FRONT = "front"
@@ -264,20 +267,27 @@ class BlockCholeskySymbolic:
 
     @property
     def depth(self) -> int:
-        """Height of the tallest elimination tree: the number of levels of the ``level`` schedule."""
+        """Height of the tallest elimination tree: its number of levels."""
+        return self._plan()["depth"]
+
+    @property
+    def num_groups(self) -> int:
+        """Batched calls per pass of the ``level`` schedule: size classes summed over the levels."""
         return len(self._plan()["fronts"])
 
     def _plan(self) -> dict:
-        """The level schedule on the host (cached): fronts grouped by their height in the elimination tree.
+        """The level schedule on the host (cached): fronts grouped by height and size.
 
         Level ``h`` holds the fronts whose longest path down to a leaf has ``h`` edges, so all
-        their children lie in lower levels and the fronts of one level are independent. They
-        are stored padded to the level's largest pivot block ``ms`` and update block ``mu``
-        (dofs): a front of pivot size ``m`` and update size ``nu`` occupies rows/columns
-        ``[0, m)`` and ``[ms, ms + nu)`` of an ``n = ms + mu`` square; its padding is an
-        identity pivot and zero couplings, so the padded factor is ``diag(L, I)`` and the padded
-        update is zero outside the real one. Children's updates live in one flat pool, level by
-        level, ``(P, mu, mu)`` each.
+        their children lie in lower levels and the fronts of one level are independent. A
+        level's fronts are split into size classes (pivot and update blocks rounded up to
+        :data:`_LEVEL_SIZE_CLASS` nodes), so that padding costs little; a group is stored
+        padded to its largest pivot block ``ms`` and update block ``mu`` (dofs): a front of
+        pivot size ``m`` and update size ``nu`` occupies rows/columns ``[0, m)`` and
+        ``[ms, ms + nu)`` of an ``n = ms + mu`` square; its padding is an identity pivot and
+        zero couplings, so the padded factor is ``diag(L, I)`` and the padded update is zero
+        outside the real one. Children's updates live in one flat pool, group by group,
+        ``(P, mu, mu)`` each.
         """
         if "plan" in self._device_cache:
             return self._device_cache["plan"]
@@ -287,17 +297,24 @@ class BlockCholeskySymbolic:
             if self._parent[k] >= 0:
                 height[self._parent[k]] = max(height[self._parent[k]], height[k] + 1)
         depth = int(height.max()) + 1 if nf else 0
-        fronts = [np.nonzero(height == h)[0] for h in range(depth)]
+        sizes = np.array(self.front_sizes, dtype=np.int64).reshape(-1, 2)
+        cls = -(-sizes // _LEVEL_SIZE_CLASS)  # size class of the pivot and update blocks
+        order = np.lexsort((cls[:, 1], cls[:, 0], height))
+        key = np.stack([height, cls[:, 0], cls[:, 1]], -1)[order]
+        cut = np.nonzero(np.any(key[1:] != key[:-1], axis=1))[0] + 1
+        fronts = [np.sort(g) for g in np.split(order, cut)] if nf else []
+        group = np.zeros(nf, dtype=np.int64)
         slot = np.zeros(nf, dtype=np.int64)
-        for ks in fronts:
+        for gi, ks in enumerate(fronts):
+            group[ks] = gi
             slot[ks] = np.arange(ks.size)
-        m = np.array([s_ * b for s_, _ in self.front_sizes], dtype=np.int64)
-        nu = np.array([u_ * b for _, u_ in self.front_sizes], dtype=np.int64)
+        m = sizes[:, 0] * b
+        nu = sizes[:, 1] * b
         ms = [int(m[ks].max()) for ks in fronts]
         mu = [int(nu[ks].max()) for ks in fronts]
         pool_off = np.cumsum([0] + [ks.size * u * u for ks, u in zip(fronts, mu)])
         zero, sink = self.num_nodes * b, self.num_nodes * b + 1  # padding reads / writes
-        levels = []
+        groups = []
         for h, ks in enumerate(fronts):
             n = ms[h] + mu[h]
             src, dst, pad, csrc, cdst, s_r, s_w, u_r, u_w = ([] for _ in range(9))
@@ -310,7 +327,7 @@ class BlockCholeskySymbolic:
                 d = np.arange(m[k], ms[h])
                 pad.append(base + d * (n + 1))
                 for c, (ud, _) in zip(self._children[k], self._child_ud[k]):
-                    hc, uc = height[c], nu[c]
+                    hc, uc = group[c], nu[c]
                     i = np.arange(uc)
                     csrc.append((pool_off[hc] + slot[c] * mu[hc] ** 2 + i[:, None] * mu[hc] + i[None, :]).ravel())
                     r = R[ud]
@@ -321,7 +338,7 @@ class BlockCholeskySymbolic:
                 u_r.append(np.concatenate([self._u_dofs[k], np.full(fill_u, zero)]))
                 u_w.append(np.concatenate([self._u_dofs[k], np.full(fill_u, sink)]))
             cat = np.concatenate
-            levels.append({
+            groups.append({
                 "src": cat(src), "dst": cat(dst), "pad": cat(pad),
                 "child_src": cat(csrc) if csrc else np.zeros(0, dtype=np.int64),
                 "child_dst": cat(cdst) if cdst else np.zeros(0, dtype=np.int64),
@@ -329,9 +346,9 @@ class BlockCholeskySymbolic:
             })
         order = np.concatenate(fronts) if fronts else np.zeros(0, dtype=np.int64)
         plan = {
-            "fronts": fronts, "slot": slot, "height": height, "ms": ms, "mu": mu,
-            "pool_off": pool_off.tolist(), "levels": levels,
-            # roots of the fronts in level order (the order of the factorisation's infos)
+            "fronts": fronts, "slot": slot, "group": group, "depth": depth, "ms": ms, "mu": mu,
+            "pool_off": pool_off.tolist(), "groups": groups,
+            # roots of the fronts in group order (the order of the factorisation's infos)
             "front_root": self._front_root[order],
         }
         self._device_cache["plan"] = plan
@@ -343,7 +360,7 @@ class BlockCholeskySymbolic:
         if key not in self._device_cache:
             plan = self._plan()
             self._device_cache[key] = _upload(
-                {"levels": plan["levels"], "front_root": plan["front_root"], "node_root": self._node_root()}, device
+                {"groups": plan["groups"], "front_root": plan["front_root"], "node_root": self._node_root()}, device
             )
         return self._device_cache[key]
 
@@ -368,6 +385,12 @@ class BlockCholeskySymbolic:
         if key not in self._device_cache:
             self._device_cache[key] = _upload([[_square_map(*ud) for ud in lst] for lst in self._child_ud], device)
         return self._device_cache[key]
+
+
+# Fronts of one level are batched by size class: pivot and update blocks rounded up to this
+# many nodes (padding then adds about 20 % to the flops of FastGO's nested-dissection fronts,
+# against 2.5-4x for one padded batch per level).
+_LEVEL_SIZE_CLASS = 4
 
 
 def _upload(tree, device: torch.device):
@@ -808,22 +831,22 @@ class BlockCholeskyFactor:
         return x.reshape(rhs.shape)
 
     def _solve_levels(self, rhs: Tensor) -> Tensor:
-        """Forward and back substitution one level of fronts at a time (batched over the level).
+        """Forward and back substitution one group of fronts at a time (batched over the group).
 
         The right-hand side gets two spare entries: one that stays zero (what padding reads)
         and one that collects what padding writes, so padding never touches real entries.
         """
         sym = self.symbolic
-        lv = sym.level_tensors(rhs.device)["levels"]
+        lv = sym.level_tensors(rhs.device)["groups"]
         y = torch.cat([rhs.reshape(-1), rhs.new_zeros(2)])
         z: list[Tensor] = []
-        for h, (L, Lu) in enumerate(zip(self._L_ss, self._L_us)):  # leaves first
+        for h, (L, Lu) in enumerate(zip(self._L_ss, self._L_us)):  # lowest level first
             zs = torch.linalg.solve_triangular(L, y[lv[h]["s_read"]].view(L.shape[0], -1, 1), upper=False)
             z.append(zs)
             if Lu.shape[1]:
                 y.index_add_(0, lv[h]["u_write"], torch.bmm(Lu, zs).reshape(-1), alpha=-1)
         x = torch.zeros_like(y)
-        for h in reversed(range(len(z))):  # roots first
+        for h in reversed(range(len(z))):  # highest level first
             L, Lu, v = self._L_ss[h], self._L_us[h], z[h]
             if Lu.shape[1]:
                 v = torch.baddbmm(v, Lu.transpose(1, 2), x[lv[h]["u_read"]].view(L.shape[0], -1, 1), alpha=-1)
@@ -844,7 +867,7 @@ class BlockCholeskyFactor:
         b = sym.block_size
         out = []
         for k, (ns, nu) in enumerate(sym.front_sizes):
-            h, p = plan["height"][k], plan["slot"][k]
+            h, p = plan["group"][k], plan["slot"][k]
             out.append((self._L_ss[h][p, : ns * b, : ns * b], self._L_us[h][p, : nu * b, : ns * b]))
         return out
 
@@ -878,9 +901,9 @@ def block_cholesky(
     Args:
         matrix: the system; same pattern as the one ``symbolic`` was built from.
         symbolic: from :func:`analyze`.
-        schedule: ``"front"`` (one front at a time) or ``"level"`` (one batched call per level
-            of the elimination tree, :class:`Schedule`); the factor's :meth:`~BlockCholeskyFactor.solve`
-            follows the same schedule.
+        schedule: ``"front"`` (one front at a time) or ``"level"`` (batched calls per level of
+            the elimination tree and size class, :class:`Schedule`); the factor's
+            :meth:`~BlockCholeskyFactor.solve` follows the same schedule.
 
     Returns:
         The factor.
@@ -972,24 +995,30 @@ def block_cholesky(
 def _factor_levels(matrix: BlockSparseMatrix, sym: BlockCholeskySymbolic) -> BlockCholeskyFactor:
     """:func:`block_cholesky` one level of the elimination tree at a time (``Schedule.LEVEL``).
 
-    Level h's P fronts are assembled into one (P, n, n) padded workspace (``BlockCholeskySymbolic._plan``)
-    by two scatters (original entries, children's updates from the pool), then factored by one
-    batched Cholesky, one batched triangular solve and one batched Schur complement, which is
-    written to the level's part of the update pool. Whole fronts (both triangles) are built,
-    so autograd reaches every entry.
+    The P fronts of one group (a level's fronts of one size class, ``BlockCholeskySymbolic._plan``)
+    are assembled into one (P, n, n) padded workspace by two scatters (original entries,
+    children's updates from the pool), then factored by one batched Cholesky, one batched
+    triangular solve and one batched Schur complement, which is written to the group's part
+    of the update pool. Whole fronts (both triangles) are built, so autograd reaches every entry.
     """
     plan = sym._plan()
     lv = sym.level_tensors(matrix.diag.device)
     values = torch.cat([matrix.diag.reshape(-1), matrix.off.reshape(-1)])
-    pool = values.new_zeros(plan["pool_off"][-1]) if plan["fronts"] else values.new_zeros(0)
+    # every pool entry a parent reads was written by its child before: no need to clear it
+    pool = values.new_empty(plan["pool_off"][-1] if plan["fronts"] else 0)
+    sizes = [ks.size * (ms + mu) ** 2 for ks, ms, mu in zip(plan["fronts"], plan["ms"], plan["mu"])]
+    # Without autograd every level is assembled in one reused workspace (no fresh pages per
+    # level) and its update is written straight into the pool.
+    grad = torch.is_grad_enabled() and (matrix.diag.requires_grad or matrix.off.requires_grad)
+    work = None if grad else values.new_empty(max(sizes, default=0))
     L_ss: list[Tensor] = []
     L_us: list[Tensor] = []
     infos: list[Tensor] = []
     for h, ks in enumerate(plan["fronts"]):
         P, ms, mu = ks.size, plan["ms"][h], plan["mu"][h]
         n = ms + mu
-        idx = lv["levels"][h]
-        W = values.new_zeros(P * n * n)
+        idx = lv["groups"][h]
+        W = values.new_zeros(sizes[h]) if grad else work[: sizes[h]].zero_()
         W.index_fill_(0, idx["pad"], 1.0)  # identity pivots of the padding
         W.index_add_(0, idx["dst"], values[idx["src"]])
         if idx["child_src"].numel():
@@ -1002,7 +1031,10 @@ def _factor_levels(matrix: BlockSparseMatrix, sym: BlockCholeskySymbolic) -> Blo
             Lu = torch.linalg.solve_triangular(L.transpose(1, 2), W[:, ms:, :ms], upper=True, left=False)  # X L^T = F_US
             L_us.append(Lu)
             a = plan["pool_off"][h]
-            pool[a : a + P * mu * mu] = torch.baddbmm(W[:, ms:, ms:], Lu, Lu.transpose(1, 2), alpha=-1).reshape(-1)
+            if grad:
+                pool[a : a + P * mu * mu] = torch.baddbmm(W[:, ms:, ms:], Lu, Lu.transpose(1, 2), alpha=-1).reshape(-1)
+            else:
+                torch.baddbmm(W[:, ms:, ms:], Lu, Lu.transpose(1, 2), alpha=-1, out=pool[a : a + P * mu * mu].view(P, mu, mu))
         else:
             L_us.append(W.new_zeros(P, 0, ms))
     ok = _tree_ok(infos, lv, sym)

@@ -28,9 +28,9 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, check_limits, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, check_limits, check_shape, parse_choice
 from ..geometry import se3_exp
-from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, SolverMethod, analyze, solve_block_sparse
+from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, Schedule, SolverMethod, analyze, solve_block_sparse
 
 __all__ = ["LMConfig", "LMResult", "levenberg_marquardt_se3"]
 
@@ -62,6 +62,9 @@ class LMConfig:
         leaf_size: supernode size of the sparse Cholesky analysis, in poses.
         ordering: fill-reducing order of the sparse Cholesky, ``"band"`` or ``"nested"`` (see
             :func:`~torchslam.optim.blocksparse.analyze`).
+        schedule: how the sparse Cholesky walks its elimination tree, ``"front"`` (one supernode
+            at a time; fastest on the CPU) or ``"level"`` (batched over each level; fewer calls
+            on accelerators, with ``ordering="nested"``), :class:`~torchslam.optim.Schedule`.
         line_search: after an accepted step, also try the minimiser of the 1-D quadratic
             through the cost, its exact slope and the step's cost (only step lengths > 1, up to
             ``max_step_scale``); speeds up the slow linear phase on soft modes of large graphs.
@@ -84,6 +87,7 @@ class LMConfig:
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 16
     ordering: str = "band"
+    schedule: Schedule | str = Schedule.FRONT
     line_search: bool = True
     max_step_scale: float = 8.0
     newton: bool = True
@@ -103,6 +107,7 @@ class LMConfig:
                 f"{self.damping}, {self.damping_up}, {self.damping_down}"
             )
         object.__setattr__(self, "solver", SolverMethod.parse(self.solver))
+        object.__setattr__(self, "schedule", parse_choice(Schedule, self.schedule, "schedule"))
 
 
 @dataclass(frozen=True)
@@ -194,7 +199,9 @@ def levenberg_marquardt_se3(
                 model = BlockSparseMatrix(H.diag + S * use_newton[node_problem][:, None, None].to(dt), H.off, H.rows, H.cols)
             else:
                 model = H
-            delta, ok = solve_block_sparse(model.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic)
+            delta, ok = solve_block_sparse(
+                model.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic, schedule=config.schedule
+            )
             bad_node = (~ok | ~torch.isfinite(delta).all(-1)).to(dt)
             ok_problem = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, bad_node) == 0
             if attempt == 1 or not try_newton:
