@@ -35,7 +35,8 @@ Conventions and limits:
     ``t[mask] = scalar`` runs ``masked_fill_`` on CUDA and does not count. On the CPU ``x.cpu()``
     returns ``x`` itself, so ``x.cpu()`` followed at once by ``x.item()`` counts once. Operations inside
     CUDA kernels' own implementations (a cuSOLVER info check that is not an ATen operator) are
-    not seen.
+    not seen. Modes are per thread: work that another thread runs (GC-SLAM's background
+    optimisation) is not counted.
 
 Example::
 

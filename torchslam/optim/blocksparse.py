@@ -877,7 +877,7 @@ def _tree_ok(infos: list[Tensor], idx: dict, sym: BlockCholeskySymbolic) -> Tens
 
     Args:
         infos: ``cholesky_ex`` infos of all fronts, () or (P,) each, in the order of
-            ``idx["front_root"]`` (elimination order, or level by level).
+            ``idx["front_root"]`` (elimination order, or group by group).
         idx: the schedule's index tensors.
     """
     if not infos:
