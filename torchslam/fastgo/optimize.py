@@ -35,8 +35,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape
-from ..optim.blocksparse import SolverMethod
+from ..errors import (
+    AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice,
+)
+from ..optim.blocksparse import Schedule, SolverMethod
 from ..optim.lm import LMConfig, levenberg_marquardt_se3
 from ..optim.robust import RobustKernel, robust_weight
 from .linearize import PairLinearization, _blocks, _centred, _pair_cost, assemble
@@ -81,6 +83,9 @@ class FastGOConfig:
         leaf_size: supernode size of the sparse Cholesky analysis, in keyframes.
         ordering: fill-reducing order of the sparse Cholesky, ``"band"`` (reverse
             Cuthill-McKee, suits route-like graphs) or ``"nested"`` (nested dissection).
+        schedule: how the sparse Cholesky walks its elimination tree, ``"front"`` (one
+            supernode at a time; fastest on the CPU) or ``"level"`` (batched over each level:
+            fewer calls on accelerators, where ``ordering="nested"`` makes the tree shallow).
         line_search: extend accepted steps along their direction when the cost keeps falling
             (see :class:`~torchslam.optim.LMConfig`).
         newton: near the optimum, add the residual curvature of the exponential map (also
@@ -105,6 +110,7 @@ class FastGOConfig:
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 16
     ordering: str = "band"
+    schedule: Schedule | str = Schedule.FRONT
     line_search: bool = True
     newton: bool = True
     robust: RobustKernel | str = RobustKernel.L2
@@ -122,6 +128,7 @@ class FastGOConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "solver", SolverMethod.parse(self.solver))
+        object.__setattr__(self, "schedule", parse_choice(Schedule, self.schedule, "schedule"))
         object.__setattr__(self, "robust", RobustKernel.parse(self.robust))
         check_limits(self)
 
@@ -129,7 +136,8 @@ class FastGOConfig:
         """The Levenberg-Marquardt settings of one round."""
         return LMConfig(
             iterations=self.iterations, tol=self.tol, step_tol=self.step_tol, damping=self.damping,
-            solver=self.solver, leaf_size=self.leaf_size, ordering=self.ordering, line_search=self.line_search, newton=self.newton,
+            solver=self.solver, leaf_size=self.leaf_size, ordering=self.ordering, schedule=self.schedule,
+            line_search=self.line_search, newton=self.newton,
         )
 
 

@@ -42,6 +42,7 @@ __all__ = [
     "Ordering",
     "BlockCholeskySymbolic",
     "BlockCholeskyFactor",
+    "Schedule",
     "SolverMethod",
     "analyze",
     "block_cholesky",
@@ -69,6 +70,23 @@ class Ordering(str, enum.Enum):
 
     BAND = "band"
     NESTED = "nested"
+
+
+class Schedule(str, enum.Enum):
+    """How the numeric factorisation and the solves walk the elimination tree.
+
+    ``FRONT``: one supernode (front) at a time, in elimination order: dense calls per front,
+    in-place assembly without autograd. ``LEVEL``: the fronts of one level of the elimination
+    tree at once, batched by size class and padded to a common size: the number of calls
+    grows with the tree's depth (times a few size classes) rather than with the number of
+    fronts, for accelerators, where each call costs a launch. Only nested-dissection orders
+    have shallow trees; a band order's tree is a chain (depth = fronts). Both schedules give
+    the same factor up to round-off; on the CPU ``FRONT`` is faster
+    (``scripts/bench_cholesky_schedule.py``).
+    """
+
+    FRONT = "front"
+    LEVEL = "level"
 
 
 @dataclass(frozen=True)
@@ -209,38 +227,141 @@ class BlockCholeskySymbolic:
     _child_ud: list = field(repr=False)
     _direct: list = field(repr=False)
     _node_front: np.ndarray = field(repr=False)
+    _front_root: np.ndarray = field(repr=False)
     _num_edges: int = field(repr=False)
     _edge_keep: np.ndarray = field(repr=False)
     _device_cache: dict = field(default_factory=dict, repr=False)
 
     def tensors(self, device: torch.device) -> dict:
-        """Return the index tensors on ``device`` (cached)."""
+        """Return the index tensors of the front-by-front schedule on ``device`` (cached)."""
         key = str(device)
         if key not in self._device_cache:
-            def t(a):
-                return torch.as_tensor(a, dtype=torch.int64, device=device)
-
-            self._device_cache[key] = {
-                "s": [t(a) for a in self._s_dofs],
-                "u": [t(a) for a in self._u_dofs],
-                "src": [t(a) for a in self._entry_src],
-                "src_all": t(self._untransposed(np.concatenate(self._entry_src)))
-                if self._entry_src else t(np.zeros(0)),
+            empty = np.zeros(0, dtype=np.int64)
+            self._device_cache[key] = _upload({
+                "s": self._s_dofs,
+                "u": self._u_dofs,
+                "src_all": self._untransposed(np.concatenate(self._entry_src)) if self._entry_src else empty,
                 "src_bounds": np.cumsum([0] + [a.size for a in self._entry_src]).tolist(),
                 # lower-triangle entries only: what the factorisation reads (fast path)
-                "lo_all": t(self._untransposed(np.concatenate([a[lo] for a, lo in zip(self._entry_src, self._entry_lower)])))
-                if self._entry_src else t(np.zeros(0)),
+                "lo_all": self._untransposed(np.concatenate([a[lo] for a, lo in zip(self._entry_src, self._entry_lower)]))
+                if self._entry_src else empty,
                 "lo_bounds": np.cumsum([0] + [int(lo.sum()) for lo in self._entry_lower]).tolist(),
-                "dst_lo": [t(a[lo]) for a, lo in zip(self._entry_dst, self._entry_lower)],
-                "dst": [t(a) for a in self._entry_dst],
+                "dst_lo": [a[lo] for a, lo in zip(self._entry_dst, self._entry_lower)],
+                "dst": self._entry_dst,
                 # scatter maps of the children's updates into each front; updates written in
                 # place into the next front (``_direct``) need none on the no-autograd path
                 "child": [
-                    [None if self._direct[c] >= 0 else t(_square_map(*ud)) for c, ud in zip(kids, lst)]
+                    [None if self._direct[c] >= 0 else _square_map(*ud) for c, ud in zip(kids, lst)]
                     for kids, lst in zip(self._children, self._child_ud)
                 ],
-                "node_front": t(self._node_front),
-            }
+                # elimination-tree root of each front, and of each node's front (fixed nodes:
+                # the spare slot F, never bad)
+                "front_root": self._front_root,
+                "node_root": self._node_root(),
+            }, device)
+        return self._device_cache[key]
+
+    def _node_root(self) -> np.ndarray:
+        """(N,) elimination-tree root of each node's front; ``num_fronts`` for fixed nodes."""
+        return np.append(self._front_root, self.num_fronts)[self._node_front]
+
+    @property
+    def depth(self) -> int:
+        """Height of the tallest elimination tree: its number of levels."""
+        return self._plan()["depth"]
+
+    @property
+    def num_groups(self) -> int:
+        """Batched calls per pass of the ``level`` schedule: size classes summed over the levels."""
+        return len(self._plan()["fronts"])
+
+    def _plan(self) -> dict:
+        """The level schedule on the host (cached): fronts grouped by height and size.
+
+        Level ``h`` holds the fronts whose longest path down to a leaf has ``h`` edges, so all
+        their children lie in lower levels and the fronts of one level are independent. A
+        level's fronts are split into size classes (pivot and update blocks rounded up to
+        :data:`_LEVEL_SIZE_CLASS` nodes), so that padding costs little; a group is stored
+        padded to its largest pivot block ``ms`` and update block ``mu`` (dofs): a front of
+        pivot size ``m`` and update size ``nu`` occupies rows/columns ``[0, m)`` and
+        ``[ms, ms + nu)`` of an ``n = ms + mu`` square; its padding is an identity pivot and
+        zero couplings, so the padded factor is ``diag(L, I)`` and the padded update is zero
+        outside the real one. Children's updates live in one flat pool, group by group,
+        ``(P, mu, mu)`` each.
+        """
+        if "plan" in self._device_cache:
+            return self._device_cache["plan"]
+        b, nf = self.block_size, self.num_fronts
+        height = np.zeros(nf, dtype=np.int64)
+        for k in range(nf):  # children come before their parents
+            if self._parent[k] >= 0:
+                height[self._parent[k]] = max(height[self._parent[k]], height[k] + 1)
+        depth = int(height.max()) + 1 if nf else 0
+        sizes = np.array(self.front_sizes, dtype=np.int64).reshape(-1, 2)
+        cls = -(-sizes // _LEVEL_SIZE_CLASS)  # size class of the pivot and update blocks
+        order = np.lexsort((cls[:, 1], cls[:, 0], height))
+        key = np.stack([height, cls[:, 0], cls[:, 1]], -1)[order]
+        cut = np.nonzero(np.any(key[1:] != key[:-1], axis=1))[0] + 1
+        fronts = [np.sort(g) for g in np.split(order, cut)] if nf else []
+        group = np.zeros(nf, dtype=np.int64)
+        slot = np.zeros(nf, dtype=np.int64)
+        for gi, ks in enumerate(fronts):
+            group[ks] = gi
+            slot[ks] = np.arange(ks.size)
+        m = sizes[:, 0] * b
+        nu = sizes[:, 1] * b
+        ms = [int(m[ks].max()) for ks in fronts]
+        mu = [int(nu[ks].max()) for ks in fronts]
+        pool_off = np.cumsum([0] + [ks.size * u * u for ks, u in zip(fronts, mu)])
+        zero, sink = self.num_nodes * b, self.num_nodes * b + 1  # padding reads / writes
+        groups = []
+        for h, ks in enumerate(fronts):
+            n = ms[h] + mu[h]
+            src, dst, pad, csrc, cdst, s_r, s_w, u_r, u_w = ([] for _ in range(9))
+            for k in ks:
+                base = slot[k] * n * n
+                R = np.concatenate([np.arange(m[k]), ms[h] + np.arange(nu[k])])  # local -> padded
+                row, col = np.divmod(self._entry_dst[k], m[k] + nu[k])
+                src.append(self._untransposed(self._entry_src[k]))
+                dst.append(base + R[row] * n + R[col])
+                d = np.arange(m[k], ms[h])
+                pad.append(base + d * (n + 1))
+                for c, (ud, _) in zip(self._children[k], self._child_ud[k]):
+                    hc, uc = group[c], nu[c]
+                    i = np.arange(uc)
+                    csrc.append((pool_off[hc] + slot[c] * mu[hc] ** 2 + i[:, None] * mu[hc] + i[None, :]).ravel())
+                    r = R[ud]
+                    cdst.append((base + r[:, None] * n + r[None, :]).ravel())
+                fill_s, fill_u = ms[h] - m[k], mu[h] - nu[k]
+                s_r.append(np.concatenate([self._s_dofs[k], np.full(fill_s, zero)]))
+                s_w.append(np.concatenate([self._s_dofs[k], np.full(fill_s, sink)]))
+                u_r.append(np.concatenate([self._u_dofs[k], np.full(fill_u, zero)]))
+                u_w.append(np.concatenate([self._u_dofs[k], np.full(fill_u, sink)]))
+            cat = np.concatenate
+            groups.append({
+                "src": cat(src), "dst": cat(dst), "pad": cat(pad),
+                "child_src": cat(csrc) if csrc else np.zeros(0, dtype=np.int64),
+                "child_dst": cat(cdst) if cdst else np.zeros(0, dtype=np.int64),
+                "s_read": cat(s_r), "s_write": cat(s_w), "u_read": cat(u_r), "u_write": cat(u_w),
+            })
+        order = np.concatenate(fronts) if fronts else np.zeros(0, dtype=np.int64)
+        plan = {
+            "fronts": fronts, "slot": slot, "group": group, "depth": depth, "ms": ms, "mu": mu,
+            "pool_off": pool_off.tolist(), "groups": groups,
+            # roots of the fronts in group order (the order of the factorisation's infos)
+            "front_root": self._front_root[order],
+        }
+        self._device_cache["plan"] = plan
+        return plan
+
+    def level_tensors(self, device: torch.device) -> dict:
+        """Return the index tensors of the level schedule on ``device`` (cached)."""
+        key = "level:" + str(device)
+        if key not in self._device_cache:
+            plan = self._plan()
+            self._device_cache[key] = _upload(
+                {"groups": plan["groups"], "front_root": plan["front_root"], "node_root": self._node_root()}, device
+            )
         return self._device_cache[key]
 
     def _untransposed(self, src: np.ndarray) -> np.ndarray:
@@ -262,11 +383,47 @@ class BlockCholeskySymbolic:
         """Scatter maps of every child's update into its parent front (autograd path, cached)."""
         key = "all:" + str(device)
         if key not in self._device_cache:
-            self._device_cache[key] = [
-                [torch.as_tensor(_square_map(*ud), dtype=torch.int64, device=device) for ud in lst]
-                for lst in self._child_ud
-            ]
+            self._device_cache[key] = _upload([[_square_map(*ud) for ud in lst] for lst in self._child_ud], device)
         return self._device_cache[key]
+
+
+# Fronts of one level are batched by size class: pivot and update blocks rounded up to this
+# many nodes (padding then adds about 20 % to the flops of FastGO's nested-dissection fronts,
+# against 2.5-4x for one padded batch per level).
+_LEVEL_SIZE_CLASS = 4
+
+
+def _upload(tree, device: torch.device):
+    """Copy the int numpy arrays of a nested structure (dicts, lists) to ``device`` in one transfer.
+
+    Other leaves are kept as they are. The arrays become views of one int64 tensor.
+    """
+    flat: list[np.ndarray] = []
+
+    def collect(x) -> None:
+        if isinstance(x, np.ndarray):
+            flat.append(x.astype(np.int64, copy=False).ravel())
+        elif isinstance(x, dict):
+            for v in x.values():
+                collect(v)
+        elif isinstance(x, list):
+            for v in x:
+                collect(v)
+
+    collect(tree)
+    whole = torch.as_tensor(np.concatenate(flat) if flat else np.zeros(0, dtype=np.int64), device=device)
+    parts = iter(torch.split(whole, [a.size for a in flat]))
+
+    def build(x):
+        if isinstance(x, np.ndarray):
+            return next(parts).view(x.shape)
+        if isinstance(x, dict):
+            return {k: build(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [build(v) for v in x]
+        return x
+
+    return build(tree)
 
 
 def _square_map(ud: np.ndarray, nb: int) -> np.ndarray:
@@ -594,6 +751,11 @@ def analyze(
     parent_pos = np.array([pos_of[sn_parent[t]] if sn_parent[t] >= 0 else -1 for t in post], dtype=np.int64)
     nf_full = np.full(num_nodes, -1, dtype=np.int64)
     nf_full[free_ids] = node_front
+    # root of each front's elimination tree: parents come after their children
+    root = np.arange(ns, dtype=np.int64)
+    for k in range(ns - 1, -1, -1):
+        if parent_pos[k] >= 0:
+            root[k] = root[parent_pos[k]]
     return BlockCholeskySymbolic(
         num_nodes=num_nodes,
         block_size=b,
@@ -611,6 +773,7 @@ def analyze(
         _child_ud=child_ud,
         _direct=direct,
         _node_front=nf_full,
+        _front_root=root,
         _num_edges=e_all,
         _edge_keep=edge_keep,
     )
@@ -635,6 +798,7 @@ class BlockCholeskyFactor:
     ok: Tensor
     _L_ss: list = field(repr=False)
     _L_us: list = field(repr=False)
+    schedule: Schedule = Schedule.FRONT
 
     def solve(self, rhs: Tensor) -> Tensor:
         """Solve ``A x = rhs`` with fixed nodes' solution zero.
@@ -647,6 +811,8 @@ class BlockCholeskyFactor:
         """
         sym = self.symbolic
         check_shape(rhs, f"{sym.num_nodes} {sym.block_size}", "rhs")
+        if self.schedule is Schedule.LEVEL:
+            return self._solve_levels(rhs)
         idx = sym.tensors(rhs.device)
         y = rhs.reshape(-1).clone()
         z: list[Tensor] = []
@@ -664,8 +830,67 @@ class BlockCholeskyFactor:
             x.index_copy_(0, idx["s"][k], xs[:, 0])
         return x.reshape(rhs.shape)
 
+    def _solve_levels(self, rhs: Tensor) -> Tensor:
+        """Forward and back substitution one group of fronts at a time (batched over the group).
 
-def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -> BlockCholeskyFactor:
+        The right-hand side gets two spare entries: one that stays zero (what padding reads)
+        and one that collects what padding writes, so padding never touches real entries.
+        """
+        sym = self.symbolic
+        lv = sym.level_tensors(rhs.device)["groups"]
+        y = torch.cat([rhs.reshape(-1), rhs.new_zeros(2)])
+        z: list[Tensor] = []
+        for h, (L, Lu) in enumerate(zip(self._L_ss, self._L_us)):  # lowest level first
+            zs = torch.linalg.solve_triangular(L, y[lv[h]["s_read"]].view(L.shape[0], -1, 1), upper=False)
+            z.append(zs)
+            if Lu.shape[1]:
+                y.index_add_(0, lv[h]["u_write"], torch.bmm(Lu, zs).reshape(-1), alpha=-1)
+        x = torch.zeros_like(y)
+        for h in reversed(range(len(z))):  # highest level first
+            L, Lu, v = self._L_ss[h], self._L_us[h], z[h]
+            if Lu.shape[1]:
+                v = torch.baddbmm(v, Lu.transpose(1, 2), x[lv[h]["u_read"]].view(L.shape[0], -1, 1), alpha=-1)
+            xs = torch.linalg.solve_triangular(L.transpose(1, 2), v, upper=True)
+            x.index_copy_(0, lv[h]["s_write"], xs.reshape(-1))
+        return x[: rhs.numel()].reshape(rhs.shape)
+
+    def fronts(self) -> list[tuple[Tensor, Tensor]]:
+        """The factor's blocks ``(L_SS, L_US)`` of every front, in elimination order (inspection, tests).
+
+        Returns:
+            Per front, its (b|S|, b|S|) lower-triangular pivot factor and (b|U|, b|S|) coupling.
+        """
+        if self.schedule is Schedule.FRONT:
+            return list(zip(self._L_ss, self._L_us))
+        sym = self.symbolic
+        plan = sym._plan()
+        b = sym.block_size
+        out = []
+        for k, (ns, nu) in enumerate(sym.front_sizes):
+            h, p = plan["group"][k], plan["slot"][k]
+            out.append((self._L_ss[h][p, : ns * b, : ns * b], self._L_us[h][p, : nu * b, : ns * b]))
+        return out
+
+
+def _tree_ok(infos: list[Tensor], idx: dict, sym: BlockCholeskySymbolic) -> Tensor:
+    """(N,) bool: the node's elimination tree factored without a failed pivot (fixed nodes True).
+
+    Args:
+        infos: ``cholesky_ex`` infos of all fronts, () or (P,) each, in the order of
+            ``idx["front_root"]`` (elimination order, or group by group).
+        idx: the schedule's index tensors.
+    """
+    if not infos:
+        return torch.ones(sym.num_nodes, dtype=torch.bool, device=idx["node_root"].device)
+    info = torch.cat([i.reshape(-1) for i in infos])
+    bad = torch.zeros(sym.num_fronts + 1, dtype=torch.int32, device=info.device)
+    bad.index_add_(0, idx["front_root"], (info != 0).to(torch.int32))
+    return bad[idx["node_root"]] == 0
+
+
+def block_cholesky(
+    matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic, schedule: Schedule | str = Schedule.FRONT
+) -> BlockCholeskyFactor:
     """Factor a block-sparse SPD matrix with a precomputed symbolic structure (multifrontal).
 
     Each supernode assembles a dense front from the original blocks it owns and the update
@@ -676,11 +901,15 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
     Args:
         matrix: the system; same pattern as the one ``symbolic`` was built from.
         symbolic: from :func:`analyze`.
+        schedule: ``"front"`` (one front at a time) or ``"level"`` (batched calls per level of
+            the elimination tree and size class, :class:`Schedule`); the factor's
+            :meth:`~BlockCholeskyFactor.solve` follows the same schedule.
 
     Returns:
         The factor.
     """
     sym = symbolic
+    schedule = parse_choice(Schedule, schedule, "schedule")
     if matrix.num_nodes != sym.num_nodes or matrix.block_size != sym.block_size:
         raise ShapeError(
             f"matrix: expected {sym.num_nodes} nodes of {sym.block_size}x{sym.block_size} blocks "
@@ -688,6 +917,8 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
         )
     if matrix.rows.shape[0] != sym._num_edges:
         raise ShapeError(f"matrix: expected {sym._num_edges} off-diagonal blocks like the analysis, got {matrix.rows.shape[0]}")
+    if schedule is Schedule.LEVEL:
+        return _factor_levels(matrix, sym)
     dev = matrix.diag.device
     idx = sym.tensors(dev)
     b = sym.block_size
@@ -756,21 +987,58 @@ def block_cholesky(matrix: BlockSparseMatrix, symbolic: BlockCholeskySymbolic) -
             L_us.append(F.new_zeros(0, m))
     # A failed pivot (not positive definite) spoils its whole elimination tree: upwards through
     # the Schur complements, downwards through back substitution. Garbage stays inside that
-    # tree because trees share nothing.
-    bad = (torch.stack(infos) != 0).cpu().numpy() if infos else np.zeros(0, dtype=bool)
-    parent = sym._parent
-    for k in range(sym.num_fronts):
-        if bad[k] and parent[k] >= 0:
-            bad[parent[k]] = True
-    for k in reversed(range(sym.num_fronts)):
-        if parent[k] >= 0 and bad[parent[k]]:
-            bad[k] = True
-    node_front = sym._node_front
-    ok_np = np.ones(sym.num_nodes, dtype=bool)
-    has = node_front >= 0
-    ok_np[has] = ~bad[node_front[has]]
-    ok = torch.as_tensor(ok_np, device=dev)
+    # tree because trees share nothing. Decided on the device: no synchronisation.
+    ok = _tree_ok(infos, idx, sym)
     return BlockCholeskyFactor(sym, ok, L_ss, L_us)
+
+
+def _factor_levels(matrix: BlockSparseMatrix, sym: BlockCholeskySymbolic) -> BlockCholeskyFactor:
+    """:func:`block_cholesky` one level of the elimination tree at a time (``Schedule.LEVEL``).
+
+    The P fronts of one group (a level's fronts of one size class, ``BlockCholeskySymbolic._plan``)
+    are assembled into one (P, n, n) padded workspace by two scatters (original entries,
+    children's updates from the pool), then factored by one batched Cholesky, one batched
+    triangular solve and one batched Schur complement, which is written to the group's part
+    of the update pool. Whole fronts (both triangles) are built, so autograd reaches every entry.
+    """
+    plan = sym._plan()
+    lv = sym.level_tensors(matrix.diag.device)
+    values = torch.cat([matrix.diag.reshape(-1), matrix.off.reshape(-1)])
+    # every pool entry a parent reads was written by its child before: no need to clear it
+    pool = values.new_empty(plan["pool_off"][-1] if plan["fronts"] else 0)
+    sizes = [ks.size * (ms + mu) ** 2 for ks, ms, mu in zip(plan["fronts"], plan["ms"], plan["mu"])]
+    # Without autograd every level is assembled in one reused workspace (no fresh pages per
+    # level) and its update is written straight into the pool.
+    grad = torch.is_grad_enabled() and (matrix.diag.requires_grad or matrix.off.requires_grad)
+    work = None if grad else values.new_empty(max(sizes, default=0))
+    L_ss: list[Tensor] = []
+    L_us: list[Tensor] = []
+    infos: list[Tensor] = []
+    for h, ks in enumerate(plan["fronts"]):
+        P, ms, mu = ks.size, plan["ms"][h], plan["mu"][h]
+        n = ms + mu
+        idx = lv["groups"][h]
+        W = values.new_zeros(sizes[h]) if grad else work[: sizes[h]].zero_()
+        W.index_fill_(0, idx["pad"], 1.0)  # identity pivots of the padding
+        W.index_add_(0, idx["dst"], values[idx["src"]])
+        if idx["child_src"].numel():
+            W.index_add_(0, idx["child_dst"], pool[idx["child_src"]])
+        W = W.view(P, n, n)
+        L, info = torch.linalg.cholesky_ex(W[:, :ms, :ms])
+        L_ss.append(L)
+        infos.append(info)
+        if mu:
+            Lu = torch.linalg.solve_triangular(L.transpose(1, 2), W[:, ms:, :ms], upper=True, left=False)  # X L^T = F_US
+            L_us.append(Lu)
+            a = plan["pool_off"][h]
+            if grad:
+                pool[a : a + P * mu * mu] = torch.baddbmm(W[:, ms:, ms:], Lu, Lu.transpose(1, 2), alpha=-1).reshape(-1)
+            else:
+                torch.baddbmm(W[:, ms:, ms:], Lu, Lu.transpose(1, 2), alpha=-1, out=pool[a : a + P * mu * mu].view(P, mu, mu))
+        else:
+            L_us.append(W.new_zeros(P, 0, ms))
+    ok = _tree_ok(infos, lv, sym)
+    return BlockCholeskyFactor(sym, ok, L_ss, L_us, Schedule.LEVEL)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -853,6 +1121,7 @@ def solve_block_sparse(
     symbolic: BlockCholeskySymbolic | None = None,
     pcg_tol: float = 1e-10,
     pcg_max_iter: int = 2000,
+    schedule: Schedule | str = Schedule.FRONT,
 ) -> tuple[Tensor, Tensor]:
     """Solve the symmetric block system ``A x = rhs`` with fixed nodes held at zero.
 
@@ -868,6 +1137,7 @@ def solve_block_sparse(
         symbolic: a reusable analysis of this pattern (Cholesky only); computed when missing.
         pcg_tol: relative residual tolerance of ``PCG``.
         pcg_max_iter: iteration cap of ``PCG``.
+        schedule: how the Cholesky walks the elimination tree (:class:`Schedule`).
 
     Returns:
         ``(x (N, b), ok (N,) bool)``; ``ok`` is False where the factorisation failed (not
@@ -882,7 +1152,7 @@ def solve_block_sparse(
     if method in (SolverMethod.AUTO, SolverMethod.CHOLESKY):
         if symbolic is None:
             symbolic = analyze(matrix.num_nodes, matrix.rows, matrix.cols, fixed, matrix.block_size)
-        factor = block_cholesky(matrix, symbolic)
+        factor = block_cholesky(matrix, symbolic, schedule)
         return factor.solve(rhs), factor.ok
     free = torch.ones(matrix.num_nodes, dtype=torch.bool, device=rhs.device) if fixed is None else ~fixed
     if method is SolverMethod.DENSE:

@@ -28,9 +28,9 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, check_limits, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, ConfigError, Limit, check_limits, check_shape, parse_choice
 from ..geometry import se3_exp
-from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, SolverMethod, analyze, solve_block_sparse
+from .blocksparse import BlockCholeskySymbolic, BlockSparseMatrix, Schedule, SolverMethod, analyze, solve_block_sparse
 
 __all__ = ["LMConfig", "LMResult", "levenberg_marquardt_se3"]
 
@@ -62,6 +62,9 @@ class LMConfig:
         leaf_size: supernode size of the sparse Cholesky analysis, in poses.
         ordering: fill-reducing order of the sparse Cholesky, ``"band"`` or ``"nested"`` (see
             :func:`~torchslam.optim.blocksparse.analyze`).
+        schedule: how the sparse Cholesky walks its elimination tree, ``"front"`` (one supernode
+            at a time; fastest on the CPU) or ``"level"`` (batched over each level; fewer calls
+            on accelerators, with ``ordering="nested"``), :class:`~torchslam.optim.Schedule`.
         line_search: after an accepted step, also try the minimiser of the 1-D quadratic
             through the cost, its exact slope and the step's cost (only step lengths > 1, up to
             ``max_step_scale``); speeds up the slow linear phase on soft modes of large graphs.
@@ -84,6 +87,7 @@ class LMConfig:
     solver: SolverMethod | str = SolverMethod.AUTO
     leaf_size: int = 16
     ordering: str = "band"
+    schedule: Schedule | str = Schedule.FRONT
     line_search: bool = True
     max_step_scale: float = 8.0
     newton: bool = True
@@ -103,6 +107,7 @@ class LMConfig:
                 f"{self.damping}, {self.damping_up}, {self.damping_down}"
             )
         object.__setattr__(self, "solver", SolverMethod.parse(self.solver))
+        object.__setattr__(self, "schedule", parse_choice(Schedule, self.schedule, "schedule"))
 
 
 @dataclass(frozen=True)
@@ -173,31 +178,40 @@ def levenberg_marquardt_se3(
     iters = torch.zeros(B, dtype=torch.int64, device=dev)
     history = [cost.detach()]
     newton_ready = torch.zeros(B, dtype=torch.bool, device=dev)
+    newton = config.newton and S is not None
+    # Host copies of the decisions the loop branches on, refreshed by one transfer at the end
+    # of every iteration (a second one only in iterations that try the exact Hessian).
+    any_active, any_newton = B > 0, False
     for _ in range(config.iterations):
-        if not bool(active.any()):
+        if not any_active:
             break
         d = torch.diagonal(H.diag, dim1=-2, dim2=-1)
         # Marquardt scaling with a small per-pose floor so that a zero diagonal entry still
         # receives some damping.
         damp = lam[node_problem][:, None] * (d + 1e-9 * d.mean(-1, keepdim=True))
         rhs = -g * active[node_problem][:, None].to(dt)
-        use_newton = newton_ready & active if (config.newton and S is not None) else torch.zeros_like(active)
-        model = H
+        use_newton = newton_ready & active if newton else torch.zeros_like(active)
+        try_newton = newton and any_newton
         for attempt in range(2):
-            if bool(use_newton.any()):
+            if try_newton:
                 if callable(S):
                     S = S()
                 model = BlockSparseMatrix(H.diag + S * use_newton[node_problem][:, None, None].to(dt), H.off, H.rows, H.cols)
             else:
                 model = H
-            delta, ok = solve_block_sparse(model.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic)
+            delta, ok = solve_block_sparse(
+                model.add_to_diagonal(damp), rhs, fixed, config.solver, symbolic, schedule=config.schedule
+            )
             bad_node = (~ok | ~torch.isfinite(delta).all(-1)).to(dt)
             ok_problem = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, bad_node) == 0
-            failed = use_newton & ~ok_problem
-            if attempt == 1 or not bool(failed.any()):
+            if attempt == 1 or not try_newton:
                 break
+            failed = use_newton & ~ok_problem
             # The exact Hessian is indefinite here: Gauss-Newton for those problems this time.
             use_newton = use_newton & ~failed
+            any_failed, try_newton = torch.stack([failed.any(), use_newton.any()]).tolist()
+            if not any_failed:
+                break
             newton_ready = newton_ready & ~failed
         T_new = se3_exp(delta) @ T
         cost_new = evaluate(T_new)
@@ -228,18 +242,19 @@ def levenberg_marquardt_se3(
         if config.line_search:
             # Floppy modes of large pose graphs are softer than the Gauss-Newton model says
             # (residual curvature), so the step undershoots. Fit c(a) = c0 + a s + a^2 k / 2
-            # through the exact slope s = 2 g.d and c(1), and try the minimiser a* > 1.
+            # through the exact slope s = 2 g.d and c(1), and try the minimiser a* > 1. The
+            # extended poses are evaluated whether or not a problem extends: one cost
+            # evaluation is cheaper than a synchronisation to decide.
             slope = torch.zeros(B, dtype=dt, device=dev).index_add(0, node_problem, 2 * (g * delta).sum(-1))
             kappa = 2 * (cost_new - cost - slope)
             a_star = torch.where(kappa > 0, -slope / torch.where(kappa > 0, kappa, torch.ones_like(kappa)), torch.ones_like(kappa))
             a_star = a_star.clamp(1.0, config.max_step_scale)
             extend = accept & (a_star.detach() > 1.2)
-            if bool(extend.any()):
-                T_ext = se3_exp(a_star[node_problem][:, None] * delta) @ T
-                cost_ext = evaluate(T_ext)
-                better = extend & torch.isfinite(cost_ext) & (cost_ext < cost_new)
-                T_new = torch.where(better[node_problem][:, None, None], T_ext, T_new)
-                cost_new = torch.where(better, cost_ext, cost_new)
+            T_ext = se3_exp(a_star[node_problem][:, None] * delta) @ T
+            cost_ext = evaluate(T_ext)
+            better = extend & torch.isfinite(cost_ext) & (cost_ext < cost_new)
+            T_new = torch.where(better[node_problem][:, None, None], T_ext, T_new)
+            cost_new = torch.where(better, cost_ext, cost_new)
         T = torch.where(accept[node_problem][:, None, None], T_new, T)
         rel = (cost.detach() - cost_new.detach()) / cost.detach().clamp_min(torch.finfo(dt).tiny)
         newton_ready = torch.where(accept, rel < config.newton_switch, newton_ready)
@@ -249,7 +264,10 @@ def levenberg_marquardt_se3(
         converged = converged | done
         active = active & ~done & (lam <= config.damping_max)
         history.append(cost.detach())
-        if bool((accept & active).any()):
+        any_active, relinearize, any_newton = torch.stack(
+            [active.any(), (accept & active).any(), (newton_ready & active).any()]
+        ).tolist()
+        if relinearize:
             H, g, _, S = _unpack(linearize(T))
     cost_hist = torch.stack(history, dim=1)
     return LMResult(T, cost_hist, iters, converged, time.perf_counter() - start)

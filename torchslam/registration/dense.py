@@ -547,7 +547,7 @@ def _warp(li: DenseLevel, lj: DenseLevel | _Pixels, T_ij: Tensor, min_depth: flo
     inside = front & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
     # Points that miss the image are clamped onto it so every sample stays finite (they are masked).
     uv = torch.stack([u.clamp_(0, w - 1), v.clamp_(0, h - 1)], dim=1)  # (B, 2, N)
-    scale = uv.new_tensor([2.0 / (w - 1), 2.0 / (h - 1)])
+    scale = _constant((2.0 / (w - 1), 2.0 / (h - 1)), uv.dtype, uv.device)
     grid = (uv.transpose(1, 2) * scale).sub_(1.0)[:, :, None, :]  # (B, N, 1, 2)
     s = F.grid_sample(li.reference, grid, mode="bilinear", padding_mode="border", align_corners=True)[..., 0]  # (B, 8, N)
     m_I = inside & (s[:, _IOK] >= _ALL_SET)
@@ -597,9 +597,19 @@ def _linearize(
 # ---------------------------------------------------------------------------- robust weighting
 
 
+@functools.lru_cache(maxsize=64)
+def _constant(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A small constant vector on ``device``, copied there once (never modified by callers).
+
+    The Gauss-Newton loop reuses it every iteration: building it afresh from host data would
+    synchronise with an accelerator each time.
+    """
+    return torch.tensor(values, dtype=dtype, device=device)
+
+
 def _floors(cfg: DenseConfig, like: Tensor) -> Tensor:
     """(2,) lower bounds of the photometric and geometric scales."""
-    return like.new_tensor([cfg.sigma_floor_photometric, cfg.sigma_floor_geometric])
+    return _constant((cfg.sigma_floor_photometric, cfg.sigma_floor_geometric), like.dtype, like.device)
 
 
 def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: Tensor | None) -> Tensor:
@@ -642,7 +652,7 @@ def _rho(e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
 
 def _term_weights(cfg: DenseConfig, like: Tensor) -> Tensor:
     """(2,) weights of the photometric and geometric mean costs: 1 and ``lambda``."""
-    return like.new_tensor([1.0, cfg.geometric_weight])
+    return _constant((1.0, cfg.geometric_weight), like.dtype, like.device)
 
 
 def _scaled_sq(wp: _Warp, s: Tensor) -> Tensor:
@@ -917,8 +927,6 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
         active = torch.ones(B, dtype=torch.bool, device=T.device)
         T_prev, prev_cost, s = T, None, None
         for _ in range(n_iter):
-            if not bool(active.any()):
-                break
             wp = _warp(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
             if prev_cost is not None:
                 # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
@@ -926,8 +934,8 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
                 T = torch.where(worse[:, None, None], T_prev, T)
                 iterations = iterations - worse.to(torch.int64)
                 active = active & ~worse
-                if not bool(active.any()):
-                    break
+                # No synchronisation here: when this stops the last pairs (rare; most stop by
+                # the tolerance), the rest of the iteration runs for nothing and changes nothing.
             s = _scale(wp.rn, wp.m, robust, cfg, s)
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
@@ -939,6 +947,8 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
             iterations = iterations + step.to(torch.int64)
             active = step & (torch.linalg.vector_norm(delta, dim=-1) >= cfg.tol)
+            if not bool(active.any()):  # the iteration's one synchronisation
+                break
     # Correspondences and residuals from the valid-depth pixels only (the rest never count).
     px = _select_pixels(fj.levels[0], 1)
     wp = _warp(fi.levels[0], px, T, cfg.min_depth)
