@@ -114,3 +114,14 @@ def test_nislam_faster_preset_changes_only_stride_and_orthographic_size():
     a, b = config_to_dict(fast), config_to_dict(NISlamConfig())
     assert {k for k in a if a[k] != b[k]} == {"pixel_stride", "kcc"}
     assert {k for k in a["kcc"] if a["kcc"][k] != b["kcc"][k]} == {"ortho_height", "ortho_width"}
+
+
+def test_nislam_accurate_preset_changes_only_the_orthographic_size():
+    from torchslam.config import config_to_dict
+    from torchslam.systems.nislam import NISlamConfig
+
+    acc = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_accurate.yaml")
+    assert (acc.kcc.ortho_height, acc.kcc.ortho_width) == (480, 640)
+    a, b = config_to_dict(acc), config_to_dict(NISlamConfig())
+    assert {k for k in a if a[k] != b[k]} == {"kcc"}
+    assert {k for k in a["kcc"] if a["kcc"][k] != b["kcc"][k]} == {"ortho_height", "ortho_width"}

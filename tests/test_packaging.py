@@ -48,7 +48,7 @@ def test_config_file_prefers_an_existing_path_and_names_the_presets(tmp_path, mo
     monkeypatch.chdir(tmp_path)
     (tmp_path / "nislam_fast").write_text("pixel_stride: 3\n")
     assert config_file("nislam_fast").resolve() == (tmp_path / "nislam_fast").resolve()
-    with pytest.raises(ConfigError, match=r"--config nislam_fastest: no such file, and not a preset \(presets: gcslam, nislam, nislam_fast"):
+    with pytest.raises(ConfigError, match=r"--config nislam_fastest: no such file, and not a preset \(presets: gcslam, nislam, nislam_accurate, nislam_fast"):
         config_file("nislam_fastest")
 
 
