@@ -404,6 +404,23 @@ def test_guided_registration_falls_back_to_brute_force_on_a_bad_prediction():
     torch.testing.assert_close(both.T_ij[1], brute.T_ij[0], rtol=0, atol=1e-12)
 
 
+def test_guided_registration_matches_again_around_its_pose_when_the_prediction_was_off():
+    g = torch.Generator().manual_seed(25)
+    T = _random_pose(g)
+    fi, fj, _, truth = _planted_features(g, 300, 100, 100, T, outlier_frac=0.3)
+    cfg = SparseConfig(guided_radius=4.0, guided_min_inliers=50)
+    exact = register_sparse_batch([fi], [fj], cfg, T_pred=T[None], focal=500.0)
+    # Off by 1 cm sideways: 500 px * 0.01 m / z, 1-6 px, more than half the window on average.
+    off = T @ se3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64))
+    first = guided_match([fi], [fj], off[None], focal=500.0, radius=4.0)[0]
+    assert int(((first >= 0) & truth).sum()) < int(truth.sum())  # the first window misses some
+    res = register_sparse_batch([fi], [fj], cfg, T_pred=off[None], focal=500.0)
+    assert res.guided.tolist() == [True]
+    assert int(res.num_inliers[0]) == int(exact.num_inliers[0]) == int(truth.sum())
+    t_err, r_err = _pose_error(res.T_ij[0], T)
+    assert t_err < 1e-9 and r_err < 1e-9
+
+
 def test_guided_match_rejects_bad_arguments():
     g = torch.Generator().manual_seed(24)
     fi, fj, _, _ = _planted_features(g, 20, 0, 0, _random_pose(g))

@@ -38,6 +38,7 @@ the same result as one call per pair and a GPU the same as the CPU. The base see
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Sequence
@@ -85,8 +86,8 @@ _BITS_MAX = 256
 _GUIDED_SPLIT = 4
 _GUIDED_CELLS = 1024
 # A guided registration whose pose moves the inliers' projections by more than this fraction of
-# the window (on average) from the predicted ones is redone by brute force: the prediction was
-# off by so much that true matches near the window's edge were likely cut off.
+# the window (on average) from the predicted ones is matched again around that pose: the
+# prediction was off by so much that true matches near the window's edge were likely cut off.
 _GUIDED_MAX_SHIFT = 0.5
 # Stream identifiers of the counter-based random numbers (isometry round r uses _STREAM_ISO + r).
 _STREAM_ISO = 1
@@ -134,9 +135,10 @@ class SparseConfig:
             percentile over a frame's points: median 3.7 px, 98th percentile 14.8 px) and all
             of 7-Scenes redkitchen's (at most 10 px).
         guided_min_inliers: a guided registration with fewer inliers than this (torchslam's
-            choice), a failed one, or one whose pose moves the inliers' projections by more than
-            half the window on average from the predicted ones, is redone with brute-force
-            matching, so a bad prediction (fast motion, a lost frame) costs time, not accuracy.
+            choice) or a failed one is redone with brute-force matching, so a bad prediction
+            (fast motion, a lost frame) costs time, not accuracy. One whose pose moves the
+            inliers' projections by more than half the window on average from the predicted
+            ones is first matched again, guided by that pose.
     """
 
     max_distance: int = 50
@@ -613,6 +615,7 @@ def ransac_rigid(
 # ---------------------------------------------------------------------------- refinement
 
 
+@functools.lru_cache(maxsize=8)
 def _refine_maps(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """Constant linear maps of the refinement's Gauss-Newton step.
 
@@ -983,7 +986,9 @@ def register_sparse_batch(
     With a prediction ``T_pred`` and ``cfg.guided_radius > 0`` the matches are guided
     (:func:`guided_match`); a pair whose guided registration fails or keeps fewer than
     ``cfg.guided_min_inliers`` inliers is matched again by brute force and registered again,
-    with the same random choices (``guided`` says which pairs kept their guided result).
+    with the same random choices (``guided`` says which pairs kept their guided result); one
+    whose pose moves its inliers' projections by more than half the window (on average) from
+    the predicted ones is first matched again guided by that pose.
 
     Args:
         fi: B reference (keyframe) features, frame i.
@@ -1018,7 +1023,15 @@ def register_sparse_batch(
     index = _guided_from_padded(pts_i, vi, di, pts_j, vj, dj, T_pred, focal, cfg.guided_radius, cfg.max_distance)
     res = _register_index(fi, fj, index, cfg, seed, pts_i, pts_j)
     weak = ~res.success | (res.num_inliers < cfg.guided_min_inliers)
-    weak |= _prediction_shift(res, T_pred.to(torch.float64), float(focal)) > _GUIDED_MAX_SHIFT * cfg.guided_radius
+    shifted = ~weak & (_prediction_shift(res, T_pred.to(torch.float64), float(focal)) > _GUIDED_MAX_SHIFT * cfg.guided_radius)
+    if bool(shifted.any()):
+        # The prediction was off by much of the window: match again around the pose just found
+        # (which true matches the first window cut off now fall inside), then judge as before.
+        T_again = torch.where(shifted[:, None, None], res.T_ij, T_pred.to(torch.float64))
+        again = _guided_from_padded(pts_i, vi, di, pts_j, vj, dj, T_again, focal, cfg.guided_radius, cfg.max_distance)
+        index = torch.where(shifted[:, None], again, index)
+        res = _register_index(fi, fj, index, cfg, seed, pts_i, pts_j)
+        weak = ~res.success | (res.num_inliers < cfg.guided_min_inliers)
     if not bool(weak.any()):
         res.guided = torch.ones(B, dtype=torch.bool, device=dev)
         return res
