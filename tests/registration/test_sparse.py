@@ -419,6 +419,10 @@ def test_guided_registration_matches_again_around_its_pose_when_the_prediction_w
     assert int(res.num_inliers[0]) == int(exact.num_inliers[0]) == int(truth.sum())
     t_err, r_err = _pose_error(res.T_ij[0], T)
     assert t_err < 1e-9 and r_err < 1e-9
+    # In a batch beside a pair that needs no second pass, each pair's result is its own.
+    both = register_sparse_batch([fi, fi], [fj, fj], cfg, T_pred=torch.stack([T, off]), focal=500.0)
+    assert torch.equal(both.num_inliers, torch.cat([exact.num_inliers, res.num_inliers]))
+    torch.testing.assert_close(both.T_ij, torch.cat([exact.T_ij, res.T_ij]), rtol=0, atol=1e-12)
 
 
 def test_guided_match_rejects_bad_arguments():

@@ -915,8 +915,16 @@ def _guided_from_padded(pts_i, vi, di, pts_j, vj, dj, T_pred, focal, radius, max
     return _guided_index(pts_i, vi, di, xy_j, vj, dj, T_pred.to(torch.float64), float(focal), float(radius), max_distance)
 
 
-def _register_index(fi, fj, index: Tensor, cfg: SparseConfig, seed: int, pts_i: Tensor, pts_j: Tensor) -> SparseResult:
-    """Isometry filter, RANSAC and refinement of the matches ``index`` (B, Kj) of B pairs."""
+def _register_index(
+    fi, fj, index: Tensor, cfg: SparseConfig, seed: int, pts_i: Tensor, pts_j: Tensor,
+    T_init: Tensor | None = None, init: Tensor | None = None,
+) -> SparseResult:
+    """Isometry filter, RANSAC and refinement of the matches ``index`` (B, Kj) of B pairs.
+
+    Pairs where ``init`` (B,) bool is True skip the filter and RANSAC: their refinement starts at
+    ``T_init`` (B, 4, 4), a pose already found for them, and selects its inliers among all
+    matches (the others' results do not change).
+    """
     dev = pts_i.device
     B = len(fi)
     has = index >= 0
@@ -934,9 +942,16 @@ def _register_index(fi, fj, index: Tensor, cfg: SparseConfig, seed: int, pts_i: 
     p_j = torch.where(valid[..., None], pts_j.gather(1, order[..., None].expand(-1, -1, 3)), zero)
     pixels_j = torch.where(valid[..., None], pix_j.gather(1, order[..., None].expand(-1, -1, 2)), zero.float())
 
-    filtered = _isometry_filter(p_i, p_j, valid, cfg, seed)
-    idx, ok = _ransac_samples(filtered, cfg, seed)
-    T0, _ = _ransac_from_samples(p_i, p_j, filtered, idx, ok, cfg)
+    if init is None or not bool(init.all()):
+        filtered = _isometry_filter(p_i, p_j, valid, cfg, seed)
+        idx, ok = _ransac_samples(filtered, cfg, seed)
+        T0, _ = _ransac_from_samples(p_i, p_j, filtered, idx, ok, cfg)
+    else:
+        filtered, ok, T0 = valid, num_matches >= cfg.ransac_sample, T_init
+    if init is not None:
+        filtered = torch.where(init[:, None], valid, filtered)
+        ok = torch.where(init, num_matches >= cfg.ransac_sample, ok)
+        T0 = torch.where(init[:, None, None], T_init.to(T0.dtype), T0)
     T, inliers, rmse = _refine_rigid(p_i, p_j, filtered & ok[:, None], T0, cfg)
     finite = torch.isfinite(T).flatten(-2).all(-1)
     T = torch.where(finite[:, None, None], T, _eye4(T, B))
@@ -1026,11 +1041,11 @@ def register_sparse_batch(
     shifted = ~weak & (_prediction_shift(res, T_pred.to(torch.float64), float(focal)) > _GUIDED_MAX_SHIFT * cfg.guided_radius)
     if bool(shifted.any()):
         # The prediction was off by much of the window: match again around the pose just found
-        # (which true matches the first window cut off now fall inside), then judge as before.
-        T_again = torch.where(shifted[:, None, None], res.T_ij, T_pred.to(torch.float64))
-        again = _guided_from_padded(pts_i, vi, di, pts_j, vj, dj, T_again, focal, cfg.guided_radius, cfg.max_distance)
+        # (which true matches the first window cut off now fall inside) and refine from that
+        # pose (no filter or RANSAC: the pose is RANSAC's already), then judge as before.
+        again = _guided_from_padded(pts_i, vi, di, pts_j, vj, dj, res.T_ij, focal, cfg.guided_radius, cfg.max_distance)
         index = torch.where(shifted[:, None], again, index)
-        res = _register_index(fi, fj, index, cfg, seed, pts_i, pts_j)
+        res = _register_index(fi, fj, index, cfg, seed, pts_i, pts_j, T_init=res.T_ij, init=shifted)
         weak = ~res.success | (res.num_inliers < cfg.guided_min_inliers)
     if not bool(weak.any()):
         res.guided = torch.ones(B, dtype=torch.bool, device=dev)
