@@ -24,6 +24,7 @@ from torchslam.registration.sparse import (
     FrameFeatures,
     SparseConfig,
     frame_features,
+    guided_match,
     isometry_filter,
     ransac_rigid,
     ransac_samples,
@@ -138,6 +139,7 @@ def test_config_defaults_are_the_released_code_values():
     got = (cfg.max_distance, cfg.isometry_rounds, cfg.isometry_partners, cfg.isometry_tol, cfg.ransac_iterations,
            cfg.ransac_sample, cfg.inlier_threshold, cfg.min_inliers, cfg.refine_iterations)
     assert got == (50, 5, 8, 0.015, 400, 4, 0.02, 30, 6)
+    assert cfg.guided_radius > 0 and cfg.guided_min_inliers >= cfg.min_inliers
 
 
 # ------------------------------------------------------------------ isometry filter
@@ -341,6 +343,100 @@ def test_batch_with_different_match_counts_equals_per_pair_calls():
     for name in ("T_ij", "rmse", "points_i", "points_j", "weights"):
         assert bool(torch.isfinite(getattr(batch, name)).all()), name
     assert torch.equal(batch.T_ij[4], torch.eye(4, dtype=F64))
+
+
+# ------------------------------------------------------------------ guided matching
+
+
+def _brute_index(fi, fj):
+    return register_sparse_batch.__globals__["_match"](fi, fj, SparseConfig(), torch.device("cpu"))
+
+
+def test_guided_match_with_a_window_over_everything_equals_brute_force():
+    g = torch.Generator().manual_seed(21)
+    pairs = [_planted_features(g, n, ei, ej, _random_pose(g), 0.5, invalid_j=5)[:2] for n, ei, ej in ((150, 80, 60), (100, 10, 200))]
+    fi, fj = [p[0] for p in pairs], [p[1] for p in pairs]
+    eye = torch.eye(4, dtype=F64).expand(2, 4, 4)
+    got = guided_match(fi, fj, eye, focal=500.0, radius=1e6)
+    want = _brute_index(fi, fj)
+    assert torch.equal(got, want) and int((want >= 0).sum()) > 150
+    # The same through registration: identical results, and the guided matches are kept.
+    a = register_sparse_batch(fi, fj, SparseConfig(guided_radius=1e6, guided_min_inliers=0), T_pred=eye, focal=500.0)
+    b = register_sparse_batch(fi, fj, SparseConfig(guided_radius=0.0), T_pred=eye, focal=500.0)
+    assert a.guided.tolist() == [True, True] and b.guided.tolist() == [False, False]
+    assert torch.equal(a.inliers, b.inliers) and torch.equal(a.T_ij, b.T_ij)
+
+
+def test_guided_match_finds_the_planted_matches_at_the_predicted_positions():
+    g = torch.Generator().manual_seed(22)
+    T = _random_pose(g)
+    fi, fj, match_of, truth = _planted_features(g, 300, 300, 100, T, outlier_frac=0.3)
+    idx = guided_match([fi], [fj], T[None], focal=500.0, radius=2.0)[0]
+    found = truth & (idx == match_of)
+    assert int(found.sum()) == int(truth.sum()) > 150  # every true match projects onto its keypoint
+    # A wrong pairing needs a descriptor within 50 bits inside 2 pixels: none here, so the
+    # planted outliers (random frame-i points) find nothing.
+    assert not bool((idx >= 0)[~truth].any())
+    # Moved by 0.5 m the window holds none of the true matches.
+    T_off = T.clone()
+    T_off[:3, 3] += torch.tensor([0.5, 0.0, 0.0], dtype=F64)
+    assert int((guided_match([fi], [fj], T_off[None], focal=500.0, radius=2.0)[0] >= 0).sum()) == 0
+
+
+def test_guided_registration_falls_back_to_brute_force_on_a_bad_prediction():
+    g = torch.Generator().manual_seed(23)
+    T = _random_pose(g)
+    fi, fj, _, _ = _planted_features(g, 300, 100, 100, T, outlier_frac=0.4)
+    cfg = SparseConfig(guided_radius=3.0, guided_min_inliers=100)
+    good = register_sparse_batch([fi], [fj], cfg, T_pred=T[None], focal=500.0)
+    assert good.guided.tolist() == [True] and bool(good.success[0])
+    t_err, r_err = _pose_error(good.T_ij[0], T)
+    assert t_err < 1e-9 and r_err < 1e-9
+    bad = T @ se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.1], dtype=F64))
+    res = register_sparse_batch([fi], [fj], cfg, T_pred=bad[None], focal=500.0)
+    brute = register_sparse(fi, fj, cfg)
+    assert res.guided.tolist() == [False] and bool(res.success[0])
+    assert torch.equal(res.T_ij, brute.T_ij) and torch.equal(res.inliers, brute.inliers)
+    # In a batch only the weak pair is redone; the other keeps its guided matches.
+    both = register_sparse_batch([fi, fi], [fj, fj], cfg, T_pred=torch.stack([T, bad]), focal=500.0)
+    assert both.guided.tolist() == [True, False]
+    torch.testing.assert_close(both.T_ij[0], good.T_ij[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(both.T_ij[1], brute.T_ij[0], rtol=0, atol=1e-12)
+
+
+def test_guided_registration_matches_again_around_its_pose_when_the_prediction_was_off():
+    g = torch.Generator().manual_seed(25)
+    T = _random_pose(g)
+    fi, fj, _, truth = _planted_features(g, 300, 100, 100, T, outlier_frac=0.3)
+    cfg = SparseConfig(guided_radius=4.0, guided_min_inliers=50)
+    exact = register_sparse_batch([fi], [fj], cfg, T_pred=T[None], focal=500.0)
+    # Off by 1 cm sideways: 500 px * 0.01 m / z, 1-6 px, more than half the window on average.
+    off = T @ se3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64))
+    first = guided_match([fi], [fj], off[None], focal=500.0, radius=4.0)[0]
+    assert int(((first >= 0) & truth).sum()) < int(truth.sum())  # the first window misses some
+    res = register_sparse_batch([fi], [fj], cfg, T_pred=off[None], focal=500.0)
+    assert res.guided.tolist() == [True]
+    assert int(res.num_inliers[0]) == int(exact.num_inliers[0]) == int(truth.sum())
+    t_err, r_err = _pose_error(res.T_ij[0], T)
+    assert t_err < 1e-9 and r_err < 1e-9
+    # In a batch beside a pair that needs no second pass, each pair's result is its own.
+    both = register_sparse_batch([fi, fi], [fj, fj], cfg, T_pred=torch.stack([T, off]), focal=500.0)
+    assert torch.equal(both.num_inliers, torch.cat([exact.num_inliers, res.num_inliers]))
+    torch.testing.assert_close(both.T_ij, torch.cat([exact.T_ij, res.T_ij]), rtol=0, atol=1e-12)
+
+
+def test_guided_match_rejects_bad_arguments():
+    g = torch.Generator().manual_seed(24)
+    fi, fj, _, _ = _planted_features(g, 20, 0, 0, _random_pose(g))
+    eye = torch.eye(4, dtype=F64)[None]
+    with pytest.raises(ShapeError, match="T_pred"):
+        guided_match([fi], [fj], eye[0], focal=500.0, radius=5.0)
+    with pytest.raises(ConfigError, match="focal"):
+        register_sparse_batch([fi], [fj], SparseConfig(guided_radius=5.0), T_pred=eye)
+    with pytest.raises(ConfigError, match="radius"):
+        guided_match([fi], [fj], eye, focal=500.0, radius=0.0)
+    with pytest.raises(ConfigError, match="guided_radius"):
+        SparseConfig(guided_radius=-1.0)
 
 
 def test_torch_matching_backend_gives_the_same_result():

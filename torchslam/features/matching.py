@@ -58,6 +58,8 @@ _BLOCK_CPU = 1 << 19
 _BLOCK_GPU = 1 << 25
 # Elements of one float block of the GEMM kernel (64 MiB in float32).
 _BLOCK_GEMM = 1 << 24
+# NumPy's element-wise popcount (NumPy >= 2.0), else None.
+_NP_POPCOUNT = getattr(np, "bitwise_count", None)
 
 
 class HammingKernel(enum.Enum):
@@ -303,11 +305,17 @@ def hamming_distance_indexed(w1: Tensor, idx1: Tensor, w2: Tensor, idx2: Tensor,
     check_shape(idx2, "H", "idx2", dims)
     h = idx1.shape[0]
     out = torch.empty(h, dtype=torch.int64, device=w1.device)
-    step = h if w1.device.type != "cpu" else max(1, chunk)
+    cpu = w1.device.type == "cpu"
+    step = h if not cpu else max(1, chunk)
     for s in range(0, h, max(step, 1)):
         x = w1.index_select(0, idx1[s : s + step])
         x ^= w2.index_select(0, idx2[s : s + step])
-        torch.sum(_popcount64_(x), -1, out=out[s : s + step])
+        if cpu and _NP_POPCOUNT is not None:
+            # NumPy >= 2 counts bits with the CPU's popcount instruction (of the unsigned words: it
+            # counts a signed integer's absolute value): one call, not the SWAR steps.
+            out[s : s + step] = torch.from_numpy(_NP_POPCOUNT(x.numpy().view(np.uint64)).sum(-1, dtype=np.int64))
+        else:
+            torch.sum(_popcount64_(x), -1, out=out[s : s + step])
     return out
 
 

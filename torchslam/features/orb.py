@@ -153,9 +153,10 @@ def _features_from_cv(keypoints, descriptors, device: torch.device) -> Features:
             levels=torch.zeros(0, dtype=torch.int64, device=device),
             responses=torch.zeros(0, dtype=torch.float32, device=device),
         )
-    pts = np.array([kp.pt for kp in keypoints], dtype=np.float32).reshape(k, 2)
-    levels = np.array([kp.octave for kp in keypoints], dtype=np.int64)
-    resp = np.array([kp.response for kp in keypoints], dtype=np.float32)
+    # OpenCV's converter for the positions (one C++ call); generators for the rest (no lists).
+    pts = np.asarray(cv2.KeyPoint_convert(keypoints), dtype=np.float32).reshape(k, 2)
+    levels = np.fromiter((kp.octave for kp in keypoints), dtype=np.int64, count=k)
+    resp = np.fromiter((kp.response for kp in keypoints), dtype=np.float32, count=k)
     return Features(
         keypoints=torch.from_numpy(pts).to(device),
         descriptors=torch.from_numpy(np.ascontiguousarray(descriptors, dtype=np.uint8)).to(device),
