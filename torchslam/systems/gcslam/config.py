@@ -62,8 +62,9 @@ class GCSlamConfig:
         map_stride: pixel stride of the keyframe clouds in ``map.ply``.
         map_voxel: voxel size of ``map.ply``, metres.
         max_depth: depth beyond this is ignored for the map, metres.
-        motion_prior: the initial pose of a frame's registration (the dense front-end starts
-            from it; the sparse one does not use it): ``"constant_velocity"`` continues the last
+        motion_prior: the predicted pose of a frame's registration (the dense front-end starts
+            from it, the sparse one guides its matches by it, ``sparse.guided_radius``):
+            ``"constant_velocity"`` continues the last
             tracked step's motion over the time since (beyond the paper: fewer Gauss-Newton
             iterations and a better start under fast motion), ``"none"`` starts from the last
             frame's pose. After a lost frame, a relocalisation or a long gap

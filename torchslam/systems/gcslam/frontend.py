@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ...fastgo import PairStats
-from ...geometry import PinholeCamera, se3_inverse
+from ...geometry import PinholeCamera
 from ...registration.dense import DenseFrame, prepare_dense_frame, register_dense_frames
 from ...registration.sparse import FrameFeatures, frame_features, register_sparse, register_sparse_batch
 from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
@@ -138,9 +138,9 @@ class TrackingFrontend:
 class SparseFrontend(TrackingFrontend):
     """ORB features of every frame registered to the keyframe's (FastGO paper §IV-A1).
 
-    With ``sparse.guided_radius > 0`` the matches are guided by a constant-velocity prediction:
-    the last frame's pose in the keyframe (``T_guess``) times the last frame-to-frame motion
-    (none after a failed registration). A weak guided registration falls back to brute-force
+    With ``sparse.guided_radius > 0`` the matches are guided by the tracker's predicted pose
+    (``T_guess``: the constant-velocity prediction of ``GCSlamConfig.motion_prior``, or the last
+    frame's pose where there is none). A weak guided registration falls back to brute-force
     matching inside :func:`~torchslam.registration.sparse.register_sparse_batch`. ``counts``
     holds how many registrations kept their guided matches and how many fell back.
     """
@@ -149,7 +149,6 @@ class SparseFrontend(TrackingFrontend):
 
     def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
         super().__init__(cfg, camera, rays, generator)
-        self._motion: Tensor | None = None  # (4, 4) last frame's pose in the frame before it
         self.counts = {"guided": 0, "fallback": 0}
 
     def prepare(self, rgb: Tensor, depth: Tensor, keyframe: bool, lap: Callable[[str], None]) -> PreparedFrame:
@@ -163,14 +162,10 @@ class SparseFrontend(TrackingFrontend):
         if cfg.guided_radius <= 0:
             res = register_sparse(keyframe.features, frame.features, cfg, self.generator)
             return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0]))
-        T_guess = T_guess.to(torch.float64)
-        T_pred = T_guess if self._motion is None else T_guess @ self._motion
         res = register_sparse_batch([keyframe.features], [frame.features], cfg, self.generator,
-                                    T_pred=T_pred[None], focal=self.camera.fx)
-        ok = bool(res.success[0])
+                                    T_pred=T_guess.to(torch.float64)[None], focal=self.camera.fx)
         self.counts["guided" if bool(res.guided[0]) else "fallback"] += 1
-        self._motion = se3_inverse(T_guess) @ res.T_ij[0] if ok else None
-        return Registration(ok, res.T_ij[0], res.stats, int(res.num_inliers[0]))
+        return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0]))
 
 
 class DenseFrontend(TrackingFrontend):
