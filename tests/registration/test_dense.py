@@ -23,6 +23,7 @@ from torchslam.geometry import (
     se3_log,
     undistorted_rays,
 )
+from torchslam.registration import dense as dense_module
 from torchslam.registration.dense import (
     DenseConfig,
     DenseFrame,
@@ -427,3 +428,28 @@ def test_real_fr1_xyz_pairs_against_ground_truth(fr1):
     assert (dt < dt0 / 5).all()
     assert res.success.all()
     assert ((res.num_correspondences > 30000) & (res.num_correspondences <= 50000)).all()
+
+
+def test_host_update_matches_the_device_path():
+    """The CPU NumPy Gauss-Newton update equals the torch one to round-off, and falls back on a
+    matrix that is not positive definite (the torch path then handles that pair alone)."""
+    g = torch.Generator().manual_seed(3)
+    J = torch.randn(4, 6, 40, generator=g, dtype=F64)
+    H = J @ J.transpose(1, 2)
+    grad = torch.randn(4, 6, generator=g, dtype=F64)
+    grad[1] *= 30  # a large step: the closed form's generic branch, not only the small-angle series
+    T = se3_exp(0.2 * torch.randn(4, 6, generator=g, dtype=F64))
+    active = torch.tensor([True, True, False, True])
+    host = dense_module._update_numpy(H, grad, T, active, 1e-3)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+        dev = dense_module._gauss_newton_update(H, grad, T, active, 1e-3)
+    torch.testing.assert_close(host[0], dev[0], rtol=0, atol=1e-12)
+    assert torch.equal(host[1], dev[1]) and torch.equal(host[2], dev[2])
+    assert torch.equal(host[0][2], T[2])  # inactive: unchanged
+    bad = H.clone()
+    bad[2] = -torch.eye(6, dtype=F64)
+    assert dense_module._update_numpy(bad, grad, T, active, 1e-3) is None
+    out = dense_module._gauss_newton_update(bad, grad, T, active, 1e-3)
+    assert not out[1][2] and torch.equal(out[0][2], T[2])
+    torch.testing.assert_close(out[0][[0, 1, 3]], dev[0][[0, 1, 3]], rtol=0, atol=1e-12)

@@ -76,6 +76,7 @@ from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
 import kornia
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -83,6 +84,7 @@ from torch import Tensor
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..geometry import (
+    SMALL_ANGLE,
     PinholeCamera,
     backproject_depth,
     distort_normalized,
@@ -119,6 +121,12 @@ _GRAM_CHUNK_MIN = 8192
 _ALL_SET = 1.0 - 1e-6
 # Fixed-point iterations of the t-distribution scale per Gauss-Newton iteration.
 _SCALE_ITERATIONS = 5
+# CPU tensors take NumPy/OpenCV fast paths where torch's fixed cost per operation dominates (the
+# results agree to float round-off). Off, the CPU runs the device path (what an accelerator runs:
+# the synchronisation budgets are measured on it).
+HOST_FAST_PATHS = True
+# The small-angle threshold of se3_exp in float64 (for the NumPy update).
+_SMALL_ANGLE_64 = SMALL_ANGLE[torch.float64]
 # 1.4826 MAD estimates a Gaussian's standard deviation.
 _MAD_TO_SIGMA = 1.4826
 
@@ -879,6 +887,70 @@ def register_dense_frames(
     return _register(fi, fj, T, cfg)
 
 
+def _gauss_newton_update(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Solve the B normal equations and apply the steps: ``T <- exp(delta) T`` where a pair is active and solved.
+
+    Returns the new (B, 4, 4) poses, (B,) bool "step taken" (active and solved) and (B,) bool
+    "step below ``tol``". On the CPU the 6x6 algebra runs in NumPy (:func:`_update_numpy`): the
+    torch path is some fifty operations on a few numbers each, whose fixed cost per call (not
+    the arithmetic) dominated a dense iteration's small work; elsewhere it stays in torch, queued
+    on the device without a synchronisation.
+    """
+    if HOST_FAST_PATHS and H.device.type == "cpu":
+        out = _update_numpy(H, g, T, active, tol)
+        if out is not None:
+            return out
+    gn = solve_pair_steps(H, g)
+    step = active & gn.solved
+    T_new = torch.where(step[:, None, None], se3_exp(gn.delta) @ T, T)
+    return T_new, step, torch.linalg.vector_norm(gn.delta, dim=-1) < tol
+
+
+def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`_gauss_newton_update` in float64 NumPy (CPU tensors); None when a pair's ``H`` is
+    not positive definite (NumPy's Cholesky fails for the whole stack; the torch path then
+    handles the pairs one by one)."""
+    Hn, gn, Tn = H.numpy(), g.numpy(), T.numpy()
+    try:
+        np.linalg.cholesky(Hn)  # positive definite, as solve_pair_steps asks
+    except np.linalg.LinAlgError:
+        return None
+    delta = -np.linalg.solve(Hn, gn[..., None])[..., 0]
+    solved = np.isfinite(delta).all(-1)
+    delta = np.where(solved[:, None], delta, 0.0)
+    step = active.numpy() & solved
+    E = _se3_exp_numpy(delta)
+    T_new = np.where(step[:, None, None], E @ Tn, Tn)
+    small = np.sqrt((delta * delta).sum(-1)) < tol
+    return torch.from_numpy(T_new), torch.from_numpy(step), torch.from_numpy(small)
+
+
+def _se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
+    """(B, 4, 4) ``exp`` of (B, 6) float64 twists ``(rho, phi)``, as :func:`~torchslam.geometry.se3_exp`
+    (the same closed form and small-angle series)."""
+    rho, phi = xi[:, :3], xi[:, 3:]
+    theta2 = (phi * phi).sum(-1)
+    small = theta2 < _SMALL_ANGLE_64
+    t2 = np.where(small, 1.0, theta2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    A = np.where(small, 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42)), s / t)
+    Bc = np.where(small, 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56)), (1 - c) / t2)
+    C = np.where(small, 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72)), (t - s) / (t2 * t))
+    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
+    z = np.zeros_like(a)
+    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
+    W2 = W @ W
+    eye = np.eye(3)
+    R = eye + A[:, None, None] * W + Bc[:, None, None] * W2
+    V = eye + Bc[:, None, None] * W + C[:, None, None] * W2
+    out = np.zeros((xi.shape[0], 4, 4))
+    out[:, :3, :3] = R
+    out[:, :3, 3] = (V @ rho[..., None])[..., 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
 @dataclass(frozen=True)
 class _Pixels:
     """The pixels of B frames j that take part at one level, padded to the longest list."""
@@ -940,13 +1012,10 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
             H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), e2, s, robust, cfg)
-            gn = solve_pair_steps(H, g)
-            delta = gn.delta
-            step = active & gn.solved
             T_prev = T
-            T = torch.where(step[:, None, None], se3_exp(delta) @ T, T)
+            T, step, small = _gauss_newton_update(H, g, T, active, cfg.tol)
             iterations = iterations + step.to(torch.int64)
-            active = step & (torch.linalg.vector_norm(delta, dim=-1) >= cfg.tol)
+            active = step & ~small
             if not bool(active.any()):  # the iteration's one synchronisation
                 break
     # Correspondences and residuals from the valid-depth pixels only (the rest never count).
