@@ -18,8 +18,9 @@ Method, for B pairs at once:
    ideal pinhole image with the same intrinsics (grey bilinearly, depth by nearest neighbour, so
    still unmixed); everything after that is pinhole. Pixels whose source lies outside the raw
    image are invalid.
-3. **Pyramid.** ``levels`` levels, finest first: grey by ``kornia.geometry.transform.pyrdown``
-   (5x5 Gaussian, then the 2x2 average), depth by the valid-aware 2x2 reduction, intrinsics by
+3. **Pyramid.** ``levels`` levels, finest first: grey as ``kornia.geometry.transform.pyrdown``
+   (5x5 Gaussian with reflected borders, then the 2x2 average; computed as one separable 6-tap
+   filter of stride 2), depth by the valid-aware 2x2 reduction, intrinsics by
    :meth:`PinholeCamera.scaled` (pixel centres at integers, so both reductions are centred on the
    scaled principal point). Image gradients are kornia's normalised Sobel, in grey levels (or
    metres) per pixel.
@@ -111,6 +112,8 @@ logger = logging.getLogger(__name__)
 # Channels of DenseLevel.reference: grey and depth, their x gradients, their y gradients, then the
 # masks, so that slices give both terms' values side by side ((B, 2, N), photometric first).
 _GREY, _Z, _GX, _ZX, _GY, _ZY, _ZOK, _IOK = range(8)
+# kornia's pyrdown (5-tap binomial blur, then the 2x2 average) as one 6-tap filter of stride 2.
+_PYRDOWN_TAPS = tuple(c / 32 for c in (1, 5, 10, 10, 5, 1))
 # ITU-R 601 luma weights of R, G, B (as kornia.color.rgb_to_grayscale).
 _GREY_WEIGHTS = (0.299, 0.587, 0.114)
 # The float32 Gram products of the normal equations are summed in float64 over this many chunks.
@@ -362,6 +365,23 @@ def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi
     return torch.where(ok, total / count.clamp_min(1), 0.0)
 
 
+def _pyrdown(x: Tensor) -> Tensor:
+    """(B, C, 2h, 2w) -> (B, C, h, w): kornia's ``pyrdown`` (5x5 Gaussian with reflected borders,
+    then the 2x2 average) as one separable 6-tap filter of stride 2, ``[1, 5, 10, 10, 5, 1] / 32``
+    (the 5-tap binomial convolved with the 2-tap box), along each axis: twelve strided
+    multiply-adds at the output's size instead of a 5x5 convolution at full size and a
+    resampling (elementwise, so a frame gives the same pyramid alone or in a batch)."""
+    H, W = x.shape[-2:]
+    p = F.pad(x, (2, 2, 2, 2), mode="reflect")
+    rows = p[..., 0:W:2] * _PYRDOWN_TAPS[0]
+    for k in range(1, 6):
+        rows.add_(p[..., k : k + W : 2], alpha=_PYRDOWN_TAPS[k])
+    out = rows[..., 0:H:2, :] * _PYRDOWN_TAPS[0]
+    for k in range(1, 6):
+        out.add_(rows[..., k : k + H : 2, :], alpha=_PYRDOWN_TAPS[k])
+    return out
+
+
 def _crop(x: Tensor, h: int, w: int) -> Tensor:
     return x[..., :h, :w]
 
@@ -465,11 +485,11 @@ def _prepare(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: DenseConfig
     levels = [_build_level(cam, grey, depth, inside, cfg)]
     for _ in range(1, cfg.levels):
         h2, w2 = grey.shape[-2] // 2, grey.shape[-1] // 2
-        grey = kornia.geometry.transform.pyrdown(_crop(grey, 2 * h2, 2 * w2))
+        grey = _pyrdown(_crop(grey, 2 * h2, 2 * w2))
         depth = _reduce_depth(_crop(depth, 2 * h2, 2 * w2), 2, cfg.depth_merge_tolerance)
         if distorted:
             # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
-            inside = (kornia.geometry.transform.pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
+            inside = (_pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
         else:
             inside = torch.ones_like(grey)
         cam = _level_camera(cam, 0.5, w2, h2)
@@ -897,26 +917,25 @@ def _gauss_newton_update(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: f
     on the device without a synchronisation.
     """
     if HOST_FAST_PATHS and H.device.type == "cpu":
-        out = _update_numpy(H, g, T, active, tol)
-        if out is not None:
-            return out
+        return _update_numpy(H, g, T, active, tol)
     gn = solve_pair_steps(H, g)
     step = active & gn.solved
     T_new = torch.where(step[:, None, None], se3_exp(gn.delta) @ T, T)
     return T_new, step, torch.linalg.vector_norm(gn.delta, dim=-1) < tol
 
 
-def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor] | None:
-    """:func:`_gauss_newton_update` in float64 NumPy (CPU tensors); None when a pair's ``H`` is
-    not positive definite (NumPy's Cholesky fails for the whole stack; the torch path then
-    handles the pairs one by one)."""
+def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_gauss_newton_update` in float64 NumPy (CPU tensors). A pair whose ``H`` is not
+    finite and positive definite (its least eigenvalue) takes no step, as in
+    :func:`~torchslam.optim.solve_pair_steps`."""
     Hn, gn, Tn = H.numpy(), g.numpy(), T.numpy()
-    try:
-        np.linalg.cholesky(Hn)  # positive definite, as solve_pair_steps asks
-    except np.linalg.LinAlgError:
-        return None
+    eye = np.eye(6)
+    ok = np.isfinite(Hn).all((1, 2))
+    Hn = np.where(ok[:, None, None], Hn, eye)
+    ok &= np.linalg.eigvalsh(Hn)[:, 0] > 0
+    Hn = np.where(ok[:, None, None], Hn, eye)
     delta = -np.linalg.solve(Hn, gn[..., None])[..., 0]
-    solved = np.isfinite(delta).all(-1)
+    solved = ok & np.isfinite(delta).all(-1)
     delta = np.where(solved[:, None], delta, 0.0)
     step = active.numpy() & solved
     E = _se3_exp_numpy(delta)
