@@ -20,7 +20,7 @@ def test_quick_cpu_check_runs_every_part(tmp_path):
     assert any(c.startswith("FastGO") for c in checks) and any(c.startswith("pose graph") for c in checks)
     assert any(c.startswith("lockstep NI-SLAM") for c in checks)
     assert all(r["ok"] for r in result["agreement"])
-    assert len(result["timings"]) == 5 and all(r["value"] > 0 for r in result["timings"])
+    assert len(result["timings"]) == 6 and all(r["value"] > 0 for r in result["timings"])
     assert "| agreement check |" in (tmp_path / "gpu_check.md").read_text()
 
 

@@ -257,3 +257,31 @@ def test_keyframe_displacement_is_zero_at_the_keyframe_pose_with_lens_distortion
     T = se3_exp(torch.tensor([0, 0, 0, 0, 0.0174533, 0], dtype=torch.float64))
     moved = system._displacement(kf, T)
     assert 0.8 * cam.fx * 0.01745 < moved < 1.6 * cam.fx * 0.01745
+
+
+def test_motion_prior_continues_the_last_step_and_knows_when_not_to():
+    sys_ = GCSlam(GCSlamConfig(threaded=False))
+    sys_.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    xi = torch.tensor([0.01, -0.02, 0.005, 0.002, 0.01, -0.003], dtype=torch.float64)
+    T1 = se3_exp(xi * 0.5)  # the step from t = 0.0 to 0.5 ... scaled below
+    sys_._last_T_kf, sys_._last_time = torch.eye(4, dtype=torch.float64), 0.0
+    sys_._update_velocity(T1, 0.1)  # one step of 0.1 s
+    sys_._last_T_kf = T1
+    # 0.05 s later: half the step again, applied in the frame's own coordinates
+    torch.testing.assert_close(sys_._predicted_T_kf(0.15), T1 @ se3_exp(xi * 0.25), atol=1e-12, rtol=0)
+    # beyond motion_prior_max_gap (0.2 s), backwards in time, and after a lost frame: the last pose
+    torch.testing.assert_close(sys_._predicted_T_kf(0.5), T1, atol=0, rtol=0)
+    torch.testing.assert_close(sys_._predicted_T_kf(0.05), T1, atol=0, rtol=0)
+    sys_._velocity = None
+    torch.testing.assert_close(sys_._predicted_T_kf(0.15), T1, atol=0, rtol=0)
+    off = GCSlam(GCSlamConfig(threaded=False, motion_prior="none"))
+    off.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    off._last_T_kf, off._last_time, off._velocity = T1, 0.1, xi
+    torch.testing.assert_close(off._predicted_T_kf(0.15), T1, atol=0, rtol=0)
+
+
+def test_motion_prior_option_is_checked():
+    with pytest.raises(ConfigError, match="motion_prior"):
+        config_from_dict(GCSlamConfig, {"motion_prior": "imu"})
+    with pytest.raises(ConfigError, match="motion_prior_max_gap"):
+        config_from_dict(GCSlamConfig, {"motion_prior_max_gap": 0})

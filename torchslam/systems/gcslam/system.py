@@ -54,7 +54,7 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
-from ...geometry import PinholeCamera, backproject_depth, project_points, se3_inverse, undistorted_rays
+from ...geometry import PinholeCamera, backproject_depth, project_points, se3_exp, se3_inverse, se3_log, undistorted_rays
 from ...registration.dense import DenseFrame
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import StepReport, SystemOutput, add_stage_ms
@@ -139,6 +139,10 @@ class GCSlam:
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
         self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
+        # The last tracked step's motion (``motion_prior``): (6,) twist per second in the frame's
+        # own coordinates and the time of that frame; None when the last frame was not tracked.
+        self._velocity: Tensor | None = None
+        self._last_time: float | None = None
         self._need_unlinked = False
         self._inline_s = 0.0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
@@ -162,18 +166,21 @@ class GCSlam:
         unlinked = not self.keyframes or self._need_unlinked
         view = self.frontend.prepare(rgb, depth, keyframe=unlinked, lap=clock.lap)
         if unlinked:
+            self._velocity, self._last_time = None, frame.timestamp
             self._new_keyframe(frame, view, reference=None, T_ref=None, stats=None)
             self._need_unlinked = False
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         kf = self.keyframes[-1]
-        reg = self.frontend.register(kf, view, self._last_T_kf)
+        reg = self.frontend.register(kf, view, self._predicted_T_kf(frame.timestamp))
         clock.lap("registration")
         if not reg.ok:
             self.counts["tracking_failures"] += 1
+            self._velocity = None
             self._relocalize(frame, view)
             clock.lap("relocalization", exclude_s=self._take_inline())
             return
+        self._update_velocity(reg.T_kf, frame.timestamp)
         self.lost_in_row = 0
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
@@ -187,6 +194,21 @@ class GCSlam:
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         self._record(frame, kf.kf, reg.T_kf)
+
+    def _predicted_T_kf(self, t: float) -> Tensor:
+        """(4, 4) initial pose of the frame at time ``t`` in the current keyframe (``motion_prior``)."""
+        v, t0 = self._velocity, self._last_time
+        if self.cfg.motion_prior == "none" or v is None or t0 is None or not 0.0 < t - t0 <= self.cfg.motion_prior_max_gap:
+            return self._last_T_kf
+        return self._last_T_kf @ se3_exp(v * (t - t0))
+
+    def _update_velocity(self, T_kf: Tensor, t: float) -> None:
+        """Take the step from the last recorded frame to this tracked one (both in the current keyframe)."""
+        t0 = self._last_time
+        step = se3_log(se3_inverse(self._last_T_kf) @ T_kf.to(torch.float64))
+        dt = t - t0 if t0 is not None else 0.0
+        self._velocity = step / dt if 0.0 < dt <= self.cfg.motion_prior_max_gap else None
+        self._last_time = t
 
     def _take_inline(self) -> float:
         s, self._inline_s = self._inline_s, 0.0
@@ -214,6 +236,7 @@ class GCSlam:
             good = res.success.nonzero().flatten()
             if len(good):
                 b = int(good[torch.argmax(res.num_inliers[good])])
+                self._velocity, self._last_time = None, frame.timestamp
                 self.counts["relocalized"] += 1
                 self.lost_in_row = 0
                 self._new_keyframe(frame, view, reference=recent[b].kf, T_ref=res.T_ij[b],
@@ -224,6 +247,7 @@ class GCSlam:
             self._need_unlinked = True
 
     def _record_lost(self, frame: Frame) -> None:
+        self._velocity = None
         self.counts["lost_frames"] += 1
         self.lost_in_row += 1
         self.frames.hold(frame, "lost")  # before the first pose there is nothing to hold

@@ -10,15 +10,21 @@ phase  call                                         what it does
 1      ``NISlam.prepare(frame) -> FrameInput``      attitude at the depth and colour instants; images on the device
 (b)    ``backproject([FrameInput]) -> [Cloud]``     one ``rgbd_to_points`` (and grey re-sampling) per camera group
 2      ``NISlam.start_match(input, cloud)``         too few points, or the first keyframe; else a ``MatchRequest``
-(t)    ``match([MatchRequest]) -> [TrackResult]``   one ``track_step`` for every frame still tracking
-3      ``NISlam.apply_match(request, result)``      the keyframe policy, fusion, keyframes, loop closure, the record;
+(t)    ``match([MatchRequest]) -> [TrackResult]``   one ``track_step`` for every frame still tracking (+ summaries)
+3      ``NISlam.apply_match(request, ...)``         the keyframe policy, fusion, keyframes, loop closure, the record;
                                                     a ``MatchRequest`` again when the match is to be retried
 (t)    ``match`` of the retried requests
-3'     ``NISlam.apply_match(request, result)``      the retried match concludes (no further retry)
+3'     ``NISlam.apply_match(request, ...)``         the retried match concludes (no further retry)
 =====  ===========================================  ======================================================
 
 Every state crossing these calls is a frozen dataclass of this module (``FrameInput``, ``Cloud``,
 ``MatchRequest``); tensors are (1, ...) rows of the sequence.
+
+On an accelerator a step waits for the device at most three times whatever the number of
+sequences: (b) reads the valid-point counts (with the colour-warp fallback flags), each (t) reads
+its batch's ``TrackSummary`` rows (``kcc.summarize``); phases 1-3 decide on those host numbers
+and never read a device tensor (``tests/systems/test_nislam_device.py`` holds them to it with
+``diagnostics.device_audit``). Keyframe steps read back more (the keyframe's colour, ORB).
 """
 
 from __future__ import annotations
