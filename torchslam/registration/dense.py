@@ -1010,6 +1010,7 @@ def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
 def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> DenseResult:
     robust = DenseRobust.parse(cfg.robust)
     B = len(fi)
+    host = HOST_FAST_PATHS and T.device.type == "cpu"
     iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
     # Coarse to fine: cfg.iterations[0] belongs to the coarsest level.
     for level, n_iter in zip(reversed(range(cfg.levels)), cfg.iterations):
@@ -1025,8 +1026,11 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
                 T = torch.where(worse[:, None, None], T_prev, T)
                 iterations = iterations - worse.to(torch.int64)
                 active = active & ~worse
-                # No synchronisation here: when this stops the last pairs (rare; most stop by
-                # the tolerance), the rest of the iteration runs for nothing and changes nothing.
+                # No synchronisation here on a device: when this stops the last pairs, the rest
+                # of the iteration runs for nothing and changes nothing. On the CPU the test is
+                # free, and the rest of the iteration is skipped.
+                if host and not bool(active.any()):
+                    break
             s = _scale(wp.rn, wp.m, robust, cfg, s)
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
