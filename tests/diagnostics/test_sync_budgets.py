@@ -19,6 +19,7 @@ from torchslam.fastgo import FastGOConfig, optimize
 from torchslam.fastgo.synthetic import loop_route_problem
 from torchslam.geometry import se3_exp, se3_inverse
 from torchslam.optim import LMConfig
+from torchslam.registration import dense as dense_module
 from torchslam.registration.dense import DenseConfig, prepare_dense_frame, register_dense_frames
 
 from tests._helpers import seeded
@@ -79,6 +80,12 @@ def test_pose_graph_iteration_at_most_two_syncs():
     assert run(5).iterations == 5
 
 
+@pytest.fixture
+def device_path(monkeypatch):
+    """The dense registration's device path: its CPU-only NumPy fast paths never run on an accelerator."""
+    monkeypatch.setattr(dense_module, "HOST_FAST_PATHS", False)
+
+
 @pytest.fixture(scope="module")
 def small_frames():
     seq = generate_sequence(SyntheticConfig(frames=5, width=160, height=120, depth_noise=False, trajectory="handheld", batch_size=5))
@@ -90,7 +97,7 @@ def small_frames():
 
 
 @pytest.mark.parametrize("robust", ["student_t", "huber"])
-def test_dense_iteration_at_most_one_sync(small_frames, robust):
+def test_dense_iteration_at_most_one_sync(small_frames, robust, device_path):
     fi, fj, cfg = small_frames
 
     def run(k):

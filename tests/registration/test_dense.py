@@ -23,6 +23,7 @@ from torchslam.geometry import (
     se3_log,
     undistorted_rays,
 )
+from torchslam.registration import dense as dense_module
 from torchslam.registration.dense import (
     DenseConfig,
     DenseFrame,
@@ -427,3 +428,53 @@ def test_real_fr1_xyz_pairs_against_ground_truth(fr1):
     assert (dt < dt0 / 5).all()
     assert res.success.all()
     assert ((res.num_correspondences > 30000) & (res.num_correspondences <= 50000)).all()
+
+
+def test_host_update_matches_the_device_path():
+    """The CPU NumPy Gauss-Newton update equals the torch one to round-off; a pair whose matrix
+    is not positive definite or not finite takes no step and leaves the others alone."""
+    g = torch.Generator().manual_seed(3)
+    J = torch.randn(4, 6, 40, generator=g, dtype=F64)
+    H = J @ J.transpose(1, 2)
+    grad = torch.randn(4, 6, generator=g, dtype=F64)
+    grad[1] *= 30  # a large step: the closed form's generic branch, not only the small-angle series
+    T = se3_exp(0.2 * torch.randn(4, 6, generator=g, dtype=F64))
+    active = torch.tensor([True, True, False, True])
+    host = dense_module._update_numpy(H, grad, T, active, 1e-3)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+        dev = dense_module._gauss_newton_update(H, grad, T, active, 1e-3)
+    torch.testing.assert_close(host[0], dev[0], rtol=0, atol=1e-12)
+    assert torch.equal(host[1], dev[1]) and torch.equal(host[2], dev[2])
+    assert torch.equal(host[0][2], T[2])  # inactive: unchanged
+    bad = H.clone()
+    bad[0] = -torch.eye(6, dtype=F64)
+    bad[3, 0, 0] = float("nan")
+    out = dense_module._update_numpy(bad, grad, T, active, 1e-3)
+    assert out[1].tolist() == [False, True, False, False]
+    assert torch.equal(out[0][[0, 2, 3]], T[[0, 2, 3]])
+    torch.testing.assert_close(out[0][1], dev[0][1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_pyrdown_matches_kornia(dtype):
+    x = torch.rand(2, 3, 24, 34, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    tol = dict(rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-13)
+    torch.testing.assert_close(dense_module._pyrdown(x), kornia.geometry.transform.pyrdown(x), **tol)
+    ones = torch.ones(1, 1, 16, 16, dtype=dtype)
+    assert (dense_module._pyrdown(ones) >= 1.0 - 1e-6).all()  # the "inside" test of undistorted pyramids
+
+
+def test_valid_aware_depth_reduction_by_three_matches_loop():
+    g = torch.Generator().manual_seed(2)
+    depth = 1.0 + torch.rand(1, 1, 10, 13, generator=g, dtype=F64) * 0.06
+    depth[torch.rand(depth.shape, generator=g) < 0.3] = 0.0
+    depth[0, 0, 0, 1] = 20.0  # out of range: ignored
+    out = _reduce_depth(depth, 3, 0.04, 0.1, 10.0)
+    assert out.shape == (1, 1, 3, 4)
+    for r in range(3):
+        for c in range(4):
+            block = depth[0, 0, 3 * r : 3 * r + 3, 3 * c : 3 * c + 3].reshape(-1)
+            v = block[(block >= 0.1) & (block <= 10.0)]
+            ref = v.mean() if len(v) and v.max() - v.min() <= 0.04 * v.min() else torch.tensor(0.0, dtype=F64)
+            torch.testing.assert_close(out[0, 0, r, c], ref, rtol=0, atol=1e-12)
