@@ -78,6 +78,23 @@ def _fmt(v, spec: str) -> str:
     return "–" if v is None else format(v, spec)
 
 
+def stage_table(rows: list[dict]) -> list[str]:
+    """Milliseconds per frame of each stage (as GC-SLAM's Table II), one row per run.
+
+    Tracking stages run on the tracking thread; ``loop_*`` and ``fastgo*`` on the optimisation
+    thread (they overlap tracking, but share its cores).
+    """
+    stages: list[str] = []
+    for r in rows:
+        stages += [k for k in r["stage_ms"] if k not in stages]
+    head = "| sequence | system | front-end | " + " | ".join(stages) + " |"
+    out = ["Milliseconds per frame of each stage (`metrics.json`'s `stage_ms`):", "", head, "|---|---|---|" + "---:|" * len(stages)]
+    for r in rows:
+        cells = " | ".join(_fmt(r["stage_ms"].get(k), ".1f") for k in stages)
+        out.append(f"| {r['sequence']} | {r['system']} | {r['frontend']} | {cells} |")
+    return out
+
+
 def markdown(rows: list[dict], env: dict) -> str:
     lines = [
         f"Machine: {env.get('cpu', '?')}, {env.get('cpu_count', '?')} cores, torch {env.get('torch', '?')}, "
@@ -92,6 +109,7 @@ def markdown(rows: list[dict], env: dict) -> str:
             f"{_fmt(r['fps_end_to_end'], '.1f')} | {_fmt(r['loops_accepted'], 'd')} / {_fmt(r['loops_rejected'], 'd')} | "
             f"{_fmt(r['lost_frames'], 'd')} | {_fmt(r['fastgo_ms_last'], '.1f')} |"
         )
+    lines += ["", *stage_table(rows)]
     lines += [
         "",
         "GC-SLAM paper, Table I (ATE RMSE cm, sparse / dense; i7 CPU, sparse 50 Hz, dense 25 Hz):",

@@ -276,8 +276,11 @@ def test_motion_prior_continues_the_last_step_and_knows_when_not_to():
     torch.testing.assert_close(sys_._predicted_T_kf(0.15), T1, atol=0, rtol=0)
     off = GCSlam(GCSlamConfig(threaded=False, motion_prior="none"))
     off.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
-    off._last_T_kf, off._last_time, off._velocity = T1, 0.1, xi
+    off._last_T_kf, off._last_time, off._velocity = T1, 0.1, (T1, 0.1)
     torch.testing.assert_close(off._predicted_T_kf(0.15), T1, atol=0, rtol=0)
+    # a steady frame rate: the step itself, no log or exp
+    sys_._last_time, sys_._velocity = 0.1, (T1, 0.1)
+    torch.testing.assert_close(sys_._predicted_T_kf(0.2), T1 @ T1, atol=1e-15, rtol=0)
 
 
 def test_motion_prior_option_is_checked():
