@@ -276,11 +276,8 @@ def test_motion_prior_continues_the_last_step_and_knows_when_not_to():
     torch.testing.assert_close(sys_._predicted_T_kf(0.15), T1, atol=0, rtol=0)
     off = GCSlam(GCSlamConfig(threaded=False, motion_prior="none"))
     off.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
-    off._last_T_kf, off._last_time, off._velocity = T1, 0.1, (T1, 0.1)
+    off._last_T_kf, off._last_time, off._velocity = T1, 0.1, xi
     torch.testing.assert_close(off._predicted_T_kf(0.15), T1, atol=0, rtol=0)
-    # a steady frame rate: the step itself, no log or exp
-    sys_._last_time, sys_._velocity = 0.1, (T1, 0.1)
-    torch.testing.assert_close(sys_._predicted_T_kf(0.2), T1 @ T1, atol=1e-15, rtol=0)
 
 
 def test_motion_prior_option_is_checked():
@@ -288,3 +285,15 @@ def test_motion_prior_option_is_checked():
         config_from_dict(GCSlamConfig, {"motion_prior": "imu"})
     with pytest.raises(ConfigError, match="motion_prior_max_gap"):
         config_from_dict(GCSlamConfig, {"motion_prior_max_gap": 0})
+
+
+def test_motion_prior_stays_a_rigid_motion_when_the_step_is_not_quite_one():
+    sys_ = GCSlam(GCSlamConfig(threaded=False))
+    sys_.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    step = se3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.02, 0.0], dtype=torch.float64))
+    step[:3, :3] *= 1.001  # a registered pose rounded off SO(3)
+    sys_._last_T_kf, sys_._last_time = torch.eye(4, dtype=torch.float64), 0.0
+    sys_._update_velocity(step, 1 / 30)
+    sys_._last_T_kf = step
+    R = (torch.linalg.inv(step) @ sys_._predicted_T_kf(2 / 30))[:3, :3]  # the increment the prior adds
+    torch.testing.assert_close(R.T @ R, torch.eye(3, dtype=torch.float64), atol=1e-9, rtol=0)

@@ -139,9 +139,9 @@ class GCSlam:
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
         self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
-        # The last tracked step (``motion_prior``): its (4, 4) motion in the frame's own
-        # coordinates and its duration, and the time of that frame; None when not tracked.
-        self._velocity: tuple[Tensor, float] | None = None
+        # The last tracked step's motion (``motion_prior``): (6,) twist per second in the frame's
+        # own coordinates and the time of that frame; None when the last frame was not tracked.
+        self._velocity: Tensor | None = None
         self._last_time: float | None = None
         self._need_unlinked = False
         self._inline_s = 0.0
@@ -196,28 +196,21 @@ class GCSlam:
         self._record(frame, kf.kf, reg.T_kf)
 
     def _predicted_T_kf(self, t: float) -> Tensor:
-        """(4, 4) initial pose of the frame at time ``t`` in the current keyframe (``motion_prior``).
-
-        The last step ``D`` (taken over ``dt`` seconds) continued over ``t - t0``:
-        ``T_last exp(log(D) (t - t0) / dt)``, which is ``T_last D`` itself when the frames are as
-        far apart as the last two, within 5 % (the usual case at a steady frame rate: no log or
-        exp; 5 % of a frame's motion is far inside the registration's basin).
-        """
-        step, t0 = self._velocity, self._last_time
-        if self.cfg.motion_prior == "none" or step is None or t0 is None or not 0.0 < t - t0 <= self.cfg.motion_prior_max_gap:
+        """(4, 4) initial pose of the frame at time ``t`` in the current keyframe (``motion_prior``)."""
+        v, t0 = self._velocity, self._last_time
+        if self.cfg.motion_prior == "none" or v is None or t0 is None or not 0.0 < t - t0 <= self.cfg.motion_prior_max_gap:
             return self._last_T_kf
-        D, dt = step
-        ratio = (t - t0) / dt
-        if abs(ratio - 1.0) <= 0.05:
-            return self._last_T_kf @ D
-        return self._last_T_kf @ se3_exp(se3_log(D) * ratio)
+        # Through the twist, never as the 4x4 step itself: exp puts the prediction back on SE(3),
+        # whereas chaining the registered (float32-rounded, slightly non-orthonormal) step would
+        # feed the deviation back frame after frame (7-Scenes dense diverged that way).
+        return self._last_T_kf @ se3_exp(v * (t - t0))
 
     def _update_velocity(self, T_kf: Tensor, t: float) -> None:
         """Take the step from the last recorded frame to this tracked one (both in the current keyframe)."""
         t0 = self._last_time
+        step = se3_log(se3_inverse(self._last_T_kf) @ T_kf.to(torch.float64))
         dt = t - t0 if t0 is not None else 0.0
-        ok = 0.0 < dt <= self.cfg.motion_prior_max_gap
-        self._velocity = (se3_inverse(self._last_T_kf) @ T_kf.to(torch.float64), dt) if ok else None
+        self._velocity = step / dt if 0.0 < dt <= self.cfg.motion_prior_max_gap else None
         self._last_time = t
 
     def _take_inline(self) -> float:
