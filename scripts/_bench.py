@@ -84,3 +84,32 @@ def test_references() -> ModuleType:
         sys.modules[name] = module
         spec.loader.exec_module(module)
     return sys.modules[name]
+
+
+GCSLAM_MODULES = ("torchslam.systems.gcslam", "torchslam.config", "torchslam.data.tum", "torchslam.data.synthetic",
+                  "torchslam.data", "torchslam.eval")
+
+
+def load_tree(path: Path, names: tuple[str, ...] = GCSLAM_MODULES) -> dict:
+    """Import ``path``'s torchslam (the modules ``names``) and set its modules aside, so two checkouts share a process.
+
+    Returns:
+        ``{"mods": every torchslam module of that checkout, name: module for each of names}``;
+        ``use_tree`` puts the modules back before that checkout's code runs.
+    """
+    import importlib
+
+    sys.path.insert(0, str(path))
+    try:
+        mods = {n: importlib.import_module(n) for n in names}
+    finally:
+        sys.path.pop(0)
+    tree = {k: sys.modules[k] for k in list(sys.modules) if k == "torchslam" or k.startswith("torchslam.")}
+    for k in tree:
+        del sys.modules[k]
+    return {"mods": tree, **mods}
+
+
+def use_tree(tree: dict) -> None:
+    """Make ``tree``'s torchslam the imported one (``load_tree``)."""
+    sys.modules.update(tree["mods"])

@@ -15,36 +15,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average
+from _bench import data_root, load_average, load_tree, use_tree
 
 STAGES = ("dense_preparation", "registration", "keyframe_decision", "orb_extraction", "keyframe_insertion")
 
 
-def _load_tree(path: Path) -> dict:
-    """Import ``path``'s torchslam and set its modules aside, so two checkouts share a process."""
-    import importlib
-
-    sys.path.insert(0, str(path))
-    try:
-        names = ("torchslam.systems.gcslam", "torchslam.config", "torchslam.data.tum", "torchslam.data.synthetic",
-                 "torchslam.data", "torchslam.eval")
-        mods = {n: importlib.import_module(n) for n in names}
-    finally:
-        sys.path.pop(0)
-    tree = {k: sys.modules[k] for k in list(sys.modules) if k == "torchslam" or k.startswith("torchslam.")}
-    for k in tree:
-        del sys.modules[k]
-    return {"mods": tree, **{n: m for n, m in mods.items()}}
-
-
-def _use(tree: dict) -> None:
-    sys.modules.update(tree["mods"])
 
 
 def _sequence(t: dict, name: str, frames: int | None, synthetic_frames: int):
@@ -68,7 +48,7 @@ def _ate(t: dict, seq, out) -> float | None:
 def compare(name: str, trees: dict, args) -> dict:
     systems, frames, seqs = {}, {}, {}
     for label, t in trees.items():
-        _use(t)
+        use_tree(t)
         seq = _sequence(t, name, args.frames, args.synthetic_frames)
         frames[label], seqs[label] = list(seq), seq
         gc = t["torchslam.systems.gcslam"]
@@ -79,14 +59,14 @@ def compare(name: str, trees: dict, args) -> dict:
     track = dict.fromkeys(trees, 0.0)
     for k in range(n):
         for label, t in trees.items():
-            _use(t)
+            use_tree(t)
             t0 = time.perf_counter()
             systems[label].track(frames[label][k])
             track[label] += time.perf_counter() - t0
     row = {}
     outs = {}
     for label, t in trees.items():
-        _use(t)
+        use_tree(t)
         t0 = time.perf_counter()
         outs[label] = systems[label].finish()
         fin = time.perf_counter() - t0
@@ -124,7 +104,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     args.set = {"after": args.set, "before": args.set_other}
-    trees = {"before": _load_tree(Path(args.other).resolve()), "after": _load_tree(Path(__file__).resolve().parents[1])}
+    trees = {"before": load_tree(Path(args.other).resolve()), "after": load_tree(Path(__file__).resolve().parents[1])}
     print(f"load average (1, 5, 15 min): {load_average()}  threads: {args.threads}  {time.strftime('%H:%M:%S')}")
     result = {name: compare(name, trees, args) for name in args.sequences.split(",")}
     print(f"load average at the end: {load_average()}")

@@ -14,34 +14,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average
+from _bench import data_root, load_average, load_tree, use_tree
 
 
-def _load_tree(path: Path) -> dict:
-    """Import ``path``'s torchslam and set its modules aside (``_use`` puts them back)."""
-    import importlib
-
-    sys.path.insert(0, str(path))
-    try:
-        names = ("torchslam.systems.gcslam", "torchslam.config", "torchslam.data.tum", "torchslam.data.synthetic",
-                 "torchslam.data", "torchslam.eval")
-        mods = {n: importlib.import_module(n) for n in names}
-    finally:
-        sys.path.pop(0)
-    tree = {k: sys.modules[k] for k in list(sys.modules) if k == "torchslam" or k.startswith("torchslam.")}
-    for k in tree:
-        del sys.modules[k]
-    return {"mods": tree, **{n: m for n, m in mods.items()}}
-
-
-def _use(tree: dict) -> None:
-    sys.modules.update(tree["mods"])
 
 
 def main() -> None:
@@ -55,14 +35,14 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    trees = {"before": _load_tree(Path(args.other).resolve()), "after": _load_tree(Path(__file__).resolve().parents[1])}
+    trees = {"before": load_tree(Path(args.other).resolve()), "after": load_tree(Path(__file__).resolve().parents[1])}
     sets = {"before": json.loads(args.set_other), "after": json.loads(args.set)}
     rows = {}
     print(f"load {load_average()}, torch threads {torch.get_num_threads()}")
     for name in args.sequences.split(","):
         systems, frames, seqs = {}, {}, {}
         for label, t in trees.items():
-            _use(t)
+            use_tree(t)
             if name.startswith("synthetic-"):
                 _, kind, seed = name.split("-")
                 syn = t["torchslam.data.synthetic"]
@@ -82,13 +62,13 @@ def main() -> None:
         n = len(frames["after"])
         for k in range(n):
             for label, t in trees.items():
-                _use(t)
+                use_tree(t)
                 t0 = time.perf_counter()
                 systems[label].track(frames[label][k])
                 track[label] += time.perf_counter() - t0
         row = {"frames": n, "load": load_average()}
         for label, t in trees.items():
-            _use(t)
+            use_tree(t)
             out = systems[label].finish()
             seq = seqs[label]
             ref = seq.groundtruth_raw if getattr(seq, "groundtruth_raw", None) is not None else seq.groundtruth
