@@ -7,6 +7,7 @@ A benchmark imports it as ``from _bench import ...`` (a script's own folder is f
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import statistics
 import sys
@@ -113,3 +114,11 @@ def load_tree(path: Path, names: tuple[str, ...] = GCSLAM_MODULES) -> dict:
 def use_tree(tree: dict) -> None:
     """Make ``tree``'s torchslam the imported one (``load_tree``)."""
     sys.modules.update(tree["mods"])
+
+
+def write_json(path: Path | None, data) -> None:
+    """Write ``data`` as indented JSON to ``path`` (its folder created), or nothing when ``path`` is None."""
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")

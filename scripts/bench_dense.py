@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average, load_tree, use_tree
+from _bench import data_root, load_average, load_tree, use_tree, write_json
 
 STAGES = ("dense_preparation", "registration", "keyframe_decision", "orb_extraction", "keyframe_insertion")
 
@@ -108,9 +108,7 @@ def main() -> None:
     print(f"load average (1, 5, 15 min): {load_average()}  threads: {args.threads}  {time.strftime('%H:%M:%S')}")
     result = {name: compare(name, trees, args) for name in args.sequences.split(",")}
     print(f"load average at the end: {load_average()}")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average, load_tree, use_tree
+from _bench import data_root, load_average, load_tree, use_tree, write_json
 
 
 
@@ -89,8 +89,7 @@ def main() -> None:
               f"lost {b['counts'].get('lost_frames')} -> {a['counts'].get('lost_frames')}  {a.get('frontend_counts', '')}")
         for k in sorted(set(b["stage_ms"]) | set(a["stage_ms"])):
             print(f"    {k:20s} {b['stage_ms'].get(k, 0):7.2f} -> {a['stage_ms'].get(k, 0):7.2f} ms/frame")
-    if args.out:
-        args.out.write_text(json.dumps(rows, indent=2) + "\n")
+    write_json(args.out, rows)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average
+from _bench import data_root, load_average, write_json
 
 FRONTEND_STAGES = ("backproject", "kcc", "fusion", "keyframe")
 STAGES = (*FRONTEND_STAGES, "loop")
@@ -255,9 +255,7 @@ def main() -> None:
         print(f"load average (1, 5, 15 min): {load_average()}  threads: {args.threads}  {time.strftime('%H:%M:%S')}")
         result = {"ab": ab, "interleave": interleave, "pareto": pareto}[args.command](args)
         print(f"load average at the end: {load_average()}")
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
 
 
 if __name__ == "__main__":
