@@ -5,15 +5,24 @@ synthetic sequences (training seeds), validated on other seeds and, with ``--tum
 frame pairs of a real TUM-layout sequence with ground truth. The checkpoint's values apply to
 ``torchslam run --system nislam --params DIR/params.pt``.
 
+``--what features``: NI-SLAM's learned KCC channels (``kcc.features=learned``), a small
+convolutional network trained end to end through the correlator (soft arg-max shift and a
+PSR-shaped term) on synthetic keyframe/frame pairs only, picked by held-out synthetic seeds. Its
+checkpoint (``kind: module``, ``KCCFeatureNet``) applies to ``torchslam run --system nislam
+--params DIR/params.pt``; the weights that ship in ``torchslam/kcc/weights/`` came from this
+command at its defaults.
+
 ``--what pairnet``: the FastGO pair-weight network, trained by unrolling FastGO on synthetic
 pose graphs with planted false loop pairs and validated on held-out graphs. Its checkpoint holds
 network weights (``kind: module``), not config values.
 
 Writes into ``--out DIR``: TensorBoard event files (loss, parameters, validation figures),
-``params.pt`` (``torchslam.learn.save_checkpoint``) and ``metrics.json``; prints the comparison
+``params.pt`` (``torchslam.learn.save_checkpoint``), ``metrics.json`` and ``history.json`` (the
+logged scalars per step); prints the comparison
 of learned against default values. Usage::
 
     python scripts/train.py --what kcc --out logs/train-kcc [--steps 60] [--tum ../shared/data/tum_fr1_xyz --tum-frames 300]
+    python scripts/train.py --what features --out logs/train-features [--threads 2]
     python scripts/train.py --what pairnet --out logs/train-pairnet
 """
 
@@ -28,9 +37,17 @@ from pathlib import Path
 
 import torch
 
-from torchslam.config import config_to_dict
+from torchslam.config import config_from_dict, config_to_dict, parse_overrides
 from torchslam.errors import TorchSlamError
-from torchslam.learn import KCCTrainConfig, PairNetTrainConfig, save_checkpoint, train_kcc, train_pairnet
+from torchslam.learn import (
+    FeatureTrainConfig,
+    KCCTrainConfig,
+    PairNetTrainConfig,
+    save_checkpoint,
+    train_features,
+    train_kcc,
+    train_pairnet,
+)
 from torchslam.systems.monitor import TensorBoardMonitor
 
 
@@ -49,22 +66,26 @@ def _seeds(text: str) -> tuple[int, ...]:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--what", required=True, choices=["kcc", "pairnet"], help="what to train")
+    p.add_argument("--what", required=True, choices=["kcc", "features", "pairnet"], help="what to train")
     p.add_argument("--out", required=True, help="output folder (TensorBoard, params.pt, metrics.json)")
     p.add_argument("--steps", type=int, default=None, help="optimiser steps (default: the training config's)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: the training config's)")
     p.add_argument("--train-seeds", type=_seeds, default=None, help="training seeds, e.g. 0-7")
     p.add_argument("--val-seeds", type=_seeds, default=None, help="held-out seeds, e.g. 100-103")
-    p.add_argument("--batch-size", type=int, default=None, help="pairs (kcc) or graphs (pairnet) per step; 0 = all")
+    p.add_argument("--batch-size", type=int, default=None, help="pairs (kcc, features) or graphs (pairnet) per step; 0 = all (kcc)")
+    p.add_argument("--seed", type=int, default=None, help="features: seed of the initialisation and batches (default 0)")
     p.add_argument("--tum", default=None, help="kcc: also validate on frame pairs of this TUM-layout folder")
     p.add_argument("--tum-frames", type=int, default=None, help="kcc: frames of --tum used from its start (default 60)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other field of the training config (KCCTrainConfig, FeatureTrainConfig, PairNetTrainConfig), "
+                        "e.g. --set hidden=4 --set gaps=[3,8]; repeatable")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     p.add_argument("-v", "--verbose", action="store_true", help="log progress")
     return p
 
 
 def _overrides(args) -> dict:
-    out = {}
+    out = dict(parse_overrides(args.sets))
     for key, attr in (("steps", "steps"), ("lr", "lr"), ("train_seeds", "train_seeds"), ("val_seeds", "val_seeds"),
                       ("batch_size", "batch_size")):
         if getattr(args, attr) is not None:
@@ -80,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     if (args.tum or args.tum_frames) and args.what != "kcc":
-        parser.error("--tum and --tum-frames apply to --what kcc only")
+        parser.error("--tum and --tum-frames apply to --what kcc only (features train on synthetic data only)")
+    if args.seed is not None and args.what != "features":
+        parser.error("--seed applies to --what features only")
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -89,11 +112,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.what == "kcc":
             tum = {"tum": args.tum} if args.tum_frames is None else {"tum": args.tum, "tum_frames": args.tum_frames}
-            cfg = KCCTrainConfig(**_overrides(args), **tum)
+            cfg = config_from_dict(KCCTrainConfig, {**_overrides(args), **tum}, source="--set")
             result = train_kcc(cfg, monitor=monitor)
             extra = {"what": "kcc", "system": "nislam", "train_config": config_to_dict(cfg)}
+        elif args.what == "features":
+            over = _overrides(args)
+            if args.seed is not None:
+                over["seed"] = args.seed
+            cfg = config_from_dict(FeatureTrainConfig, over, source="--set")
+            result = train_features(cfg, monitor=monitor)
+            extra = {"what": "features", "system": "nislam", "train_config": config_to_dict(cfg),
+                     "architecture": result.module.architecture()}
         else:
-            cfg = PairNetTrainConfig(**_overrides(args))
+            cfg = config_from_dict(PairNetTrainConfig, _overrides(args), source="--set")
             result = train_pairnet(cfg, monitor=monitor)
             extra = {"what": "pairnet", "system": "gcslam", "train_config": config_to_dict(cfg),
                      "architecture": result.module.architecture()}
@@ -106,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     m["seconds"] = time.perf_counter() - start
     m["torch_threads"] = args.threads
     extra["metrics"] = json.loads(json.dumps(m))
+    (out / "history.json").write_text(json.dumps(result.history))
     ckpt = save_checkpoint(out / "params.pt", result.module, extra)
     (out / "metrics.json").write_text(json.dumps({"what": args.what, "train_config": extra["train_config"], **m}, indent=2))
     if args.what == "kcc":
@@ -116,6 +148,11 @@ def main(argv: list[str] | None = None) -> int:
         print(_line("validation (synthetic)", m["val_default"], m["val_learned"], keys))
         if "tum_default" in m:
             print(_line(f"validation ({Path(args.tum).name}, {m['tum_pairs']} pairs)", m["tum_default"], m["tum_learned"], keys))
+    elif args.what == "features":
+        print(f"trained on {m['train_pairs']} synthetic pairs, picked at step {m['best_step']} by {m['val_pairs']} "
+              f"held-out pairs ({m['seconds']:.0f} s, {m['parameters']} parameters)")
+        keys = ("score_px2", "median_px", "fail_rate", "median_psr")
+        print(_line("validation (hand-crafted -> learned)", m["val_handcrafted"], m["val_learned"], keys))
     else:
         print(f"trained on {m['train_graphs']} graphs, validated on {m['val_graphs']} held-out graphs ({m['seconds']:.0f} s)")
         print(_line("validation (unit weights -> net)", m["val_unit"], m["val_learned"], ("rms_m", "weight_false", "weight_true")))

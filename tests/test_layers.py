@@ -31,6 +31,7 @@ LAYERS: dict[str, int] = {
     "torchslam.devices": 0,
     "torchslam.diagnostics": 0,
     "torchslam.config": 1,
+    "torchslam.checkpoint": 1,
     "torchslam.geometry": 2,
     "torchslam.optim": 3,
     # algorithms on geometry and the solvers

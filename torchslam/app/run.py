@@ -68,7 +68,8 @@ class RunOptions:
     """Everything about a run that is not the system's own config.
 
     ``params`` is a checkpoint of learned config values (``torchslam.learn.save_checkpoint``)
-    applied on top of the config file and below ``--set`` overrides. With ``tensorboard``, the
+    applied on top of the config file and below ``--set`` overrides, or of a network a run can
+    use (the learned KCC channels, which it selects: ``kcc.features=learned`` with its path). With ``tensorboard``, the
     ATE so far, running stage times and counters are logged every ``monitor_every`` frames.
     ``out`` must be a missing or empty folder; ``overwrite`` clears one that holds only the
     files of an earlier run (see ``runfolder.prepare_run_folder``).
@@ -99,8 +100,8 @@ def resolve_config(
     The YAML file holds the system's keys at the top level and an optional ``data:`` section;
     ``--set data.stride=2`` and ``--set kcc.sigma=0.3`` address the two parts. Sections merge key
     by key, so the latter keeps the file's other ``kcc`` values. ``params`` (a
-    ``torchslam.learn`` checkpoint of config values, e.g. ``kcc.sigma``) is applied after the
-    file and before ``--set``; a checkpoint of another system or with unknown keys raises a
+    ``torchslam.learn`` checkpoint of config values, e.g. ``kcc.sigma``, or of the learned KCC
+    channels, ``learn.params.checkpoint_overrides``) is applied after the file and before ``--set``; a checkpoint of another system or with unknown keys raises a
     ConfigError naming the file and the key.
 
     Returns:
@@ -113,10 +114,10 @@ def resolve_config(
         layers.append((str(path), read_yaml_mapping(path)))
     if params is not None:
         from ..learn.params import (
-            checkpoint_values,  # lazy: torch.load and the learn package
+            checkpoint_overrides,  # lazy: torch.load and the learn package
         )
 
-        values = checkpoint_values(params, spec.config_cls, system)
+        values = checkpoint_overrides(params, spec.config_cls, system)
         layers.append((str(params), nest_dotted(values, f"{params}: ")))
     layers.append(("--set", parse_overrides(list(overrides))))
     system_data: dict[str, Any] = {}

@@ -12,12 +12,14 @@ The pieces compose as (see each module for equations and conventions)::
     dz = depth_translation(fr, kf, pred.index)
     # scene content moved by t = (pred.t_xy, dz.t_z): the frame camera is at -t from the keyframe
 
+``features`` holds the learned alternative to ``kcc_features`` (``KCCConfig.features``).
 ``frontend`` holds that recipe as two calls taking a config (or a ``KernelCorrelator``):
 ``keyframe_filter(kf_map, cfg)`` for the training lines and ``track_step(...)`` for the rest.
 """
 
 from .correlator import (
     ChannelNorm,
+    FeatureKind,
     KCCConfig,
     KCCFilter,
     KCCPrediction,
@@ -25,12 +27,15 @@ from .correlator import (
     Subpixel,
     find_peak,
     kcc_features,
+    kcc_features_masked,
     kcc_predict,
     kcc_response,
     kcc_train,
     kernel_correlation,
     spectral_energy,
+    standardize_masked,
 )
+from .features import PACKAGED_WEIGHTS, KCCFeatureNet, load_feature_net
 from .frontend import TrackResult, TrackSummary, correlator_for, kcc_channels, keyframe_filter, summarize, track_step
 from .fusion import DepthStatistic, DepthTranslation, KeyframeMap, depth_translation, fuse_keyframe, keyframe_map, shift_image
 from .ortho import (
@@ -49,13 +54,16 @@ from .window import Window, apply_window, kcc_window
 __all__ = [
     "ChannelNorm",
     "DepthStatistic",
+    "FeatureKind",
     "DepthTranslation",
     "KCCConfig",
+    "KCCFeatureNet",
     "KCCFilter",
     "KCCPrediction",
     "KernelCorrelator",
     "KeyframeMap",
     "OrthoImages",
+    "PACKAGED_WEIGHTS",
     "Peak",
     "Subpixel",
     "TrackResult",
@@ -70,6 +78,7 @@ __all__ = [
     "grey_from_rgb",
     "kcc_channels",
     "kcc_features",
+    "kcc_features_masked",
     "kcc_predict",
     "kcc_response",
     "kcc_train",
@@ -77,6 +86,7 @@ __all__ = [
     "kernel_correlation",
     "keyframe_filter",
     "keyframe_map",
+    "load_feature_net",
     "orthographic_project",
     "peak_to_sidelobe",
     "rgbd_to_points",
@@ -87,6 +97,7 @@ __all__ = [
     "shift_variance",
     "soft_argmax",
     "spectral_energy",
+    "standardize_masked",
     "summarize",
     "track_step",
 ]

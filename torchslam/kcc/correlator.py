@@ -54,11 +54,12 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
-from .window import Window
+from .window import Window, apply_window
 from .peak import Peak, _argmax, _check_response, _per_item, _refine_quadratic, _wrap, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
     "ChannelNorm",
+    "FeatureKind",
     "KCCConfig",
     "KCCFilter",
     "KCCPrediction",
@@ -67,6 +68,7 @@ __all__ = [
     "Subpixel",
     "find_peak",
     "kcc_features",
+    "kcc_features_masked",
     "kcc_predict",
     "kcc_response",
     "kcc_train",
@@ -75,6 +77,7 @@ __all__ = [
     "shift_variance",
     "soft_argmax",
     "spectral_energy",
+    "standardize_masked",
 ]
 
 
@@ -112,6 +115,19 @@ class ChannelNorm(str, enum.Enum):
     STANDARDIZE = "standardize"
 
 
+class FeatureKind(str, enum.Enum):
+    """Where the KCC channels of an orthographic image come from.
+
+    HANDCRAFTED: grey and depth (``kcc_features`` with ``channel_norm`` and ``fill_holes``), the paper's.
+    LEARNED: a small convolutional network on the orthographic grey, depth and validity
+        (``torchslam.kcc.features.KCCFeatureNet``), trained through the correlator on synthetic
+        sequences; its weights ship with the package (``KCCConfig.features_weights``).
+    """
+
+    HANDCRAFTED = "handcrafted"
+    LEARNED = "learned"
+
+
 @dataclass(frozen=True)
 class KCCConfig:
     """Settings of the NI-SLAM front-end core; defaults are the paper's (§10.1) where it gives them.
@@ -147,6 +163,11 @@ class KCCConfig:
         soft_argmax: use the differentiable soft arg-max instead of the hard peak for the shift.
         temperature: soft arg-max temperature, in units of the correlation output (≈1 at a
             perfect match).
+        features: the channels' source (``FeatureKind``): the hand-crafted grey and depth, or
+            the learned network's channels.
+        features_weights: checkpoint of the learned channels' network (``KCCFeatureNet``);
+            empty for the weights that ship with torchslam. Only read with
+            ``features="learned"``.
     """
 
     sigma: float = 0.2
@@ -170,6 +191,8 @@ class KCCConfig:
     depth_statistic: DepthStatistic = DepthStatistic.MEAN
     soft_argmax: bool = False
     temperature: float = 0.02
+    features: FeatureKind = FeatureKind.HANDCRAFTED
+    features_weights: str = ""
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "sigma": POSITIVE, "lam": POSITIVE, "T_c": POSITIVE, "T_d": POSITIVE, "T_K": NON_NEGATIVE, "T_M": NON_NEGATIVE,
@@ -183,6 +206,9 @@ class KCCConfig:
         object.__setattr__(self, "channel_norm", parse_choice(ChannelNorm, self.channel_norm, "channel_norm"))
         object.__setattr__(self, "window", parse_choice(Window, self.window, "window"))
         object.__setattr__(self, "depth_statistic", parse_choice(DepthStatistic, self.depth_statistic, "depth_statistic"))
+        object.__setattr__(self, "features", parse_choice(FeatureKind, self.features, "features"))
+        if not isinstance(self.features_weights, str):
+            raise ConfigError(f"features_weights: expected a file path (a string), got {self.features_weights!r}")
         check_limits(self)
         if not self.T_M > self.T_K:
             raise ConfigError(f"T_M: expected T_M > T_K (the paper's condition), got T_M={self.T_M}, T_K={self.T_K}")
@@ -268,6 +294,22 @@ def kcc_features(
     Returns:
         (B, 2, H, W) channels ``(grey, depth)``, 0 at pixels that remain invalid.
     """
+    return kcc_features_masked(grey, depth, valid, mode, fill_holes)[0]
+
+
+def kcc_features_masked(
+    grey: Tensor,
+    depth: Tensor,
+    valid: Tensor,
+    mode: ChannelNorm | str = ChannelNorm.STANDARDIZE,
+    fill_holes: int = 3,
+) -> tuple[Tensor, Tensor]:
+    """``kcc_features`` and the mask of the pixels it holds a value at.
+
+    Returns:
+        (B, 2, H, W) channels (``kcc_features``) and the (B, 1, H, W) mask, in their dtype: 1
+        where the pixel is valid or was filled from a valid neighbour, 0 where it stays a hole.
+    """
     dims: dict[str, int] = {}
     check_shape(grey, "B H W", "grey", dims)
     check_shape(depth, "B H W", "depth", dims)
@@ -301,12 +343,24 @@ def kcc_features(
         x = where(valid[:, None], xm[:, :2], num / den.clamp_min(1.0))
         m = (valid[:, None] | has).to(dtype)
     if mode is ChannelNorm.RAW:
-        return x * m
+        return x * m, m
+    return standardize_masked(x, m), m
+
+
+def standardize_masked(x: Tensor, m: Tensor) -> Tensor:
+    """Shift each image and channel of ``x`` to zero mean and unit variance over the mask, 0 off it.
+
+    Args:
+        x: (B, C, H, W) images.
+        m: (B, 1, H, W) 0/1 mask in the dtype of ``x``.
+
+    Returns:
+        (B, C, H, W); a channel constant over the mask stays 0 instead of dividing by zero.
+    """
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
     mean = (x * m).sum(dim=(-2, -1), keepdim=True) / n
     centred = x - mean
     var = (centred.square() * m).sum(dim=(-2, -1), keepdim=True) / n
-    # A constant channel (var 0) stays 0 instead of dividing by zero.
     inv = torch.where(var > 0, torch.rsqrt(var.clamp_min(torch.finfo(x.dtype).tiny)), torch.zeros_like(var))
     return centred * inv * m
 
@@ -656,17 +710,40 @@ class KernelCorrelator(nn.Module):
     ``sigma`` (``lam``, ``temperature``) reads the positive 0-d value. Gradients reach the
     parameters through the kernel, the filter and, with ``cfg.soft_argmax``, the soft arg-max.
 
+    With ``cfg.features == "learned"`` it also holds the network of the learned channels as the
+    submodule ``features`` (``torchslam.kcc.features.KCCFeatureNet``, given; ``correlator_for``
+    reads it from ``cfg.features_weights`` or the packaged weights), so that ``.to(device)`` moves it too;
+    ``channels`` computes a map's or frame's KCC input either way.
+
     Args:
         cfg: KCC settings.
         learnable: names of the values to learn.
         dtype: dtype of the held values (they are cast to the inputs' dtype at use).
+        features: the learned channels' network (only with ``cfg.features == "learned"``).
     """
 
     LEARNABLE = frozenset({"sigma", "lam", "temperature"})
 
-    def __init__(self, cfg: KCCConfig | None = None, learnable=frozenset(), dtype: torch.dtype = torch.float32):
+    def __init__(
+        self,
+        cfg: KCCConfig | None = None,
+        learnable=frozenset(),
+        dtype: torch.dtype = torch.float32,
+        features: nn.Module | None = None,
+    ):
         super().__init__()
         self.cfg = cfg if cfg is not None else KCCConfig()
+        if self.cfg.features is FeatureKind.LEARNED:
+            if features is None:
+                raise ConfigError(
+                    "features: cfg.features is 'learned' but no network was given; pass features= "
+                    "(torchslam.kcc.load_feature_net) or build the correlator with torchslam.kcc.correlator_for(cfg)"
+                )
+            self.features = features
+        elif features is not None:
+            raise ConfigError("features: a feature network was given but cfg.features is 'handcrafted'; set features='learned'")
+        else:
+            self.features = None
         unknown = set(learnable) - self.LEARNABLE
         if unknown:
             raise ConfigError(f"learnable: unknown names {sorted(unknown)}; valid are {sorted(self.LEARNABLE)}")
@@ -684,6 +761,19 @@ class KernelCorrelator(nn.Module):
             if raw is not None:
                 return positive_value(raw)
         return super().__getattr__(name)
+
+    def channels(self, images) -> Tensor:
+        """(B, C, H, W) KCC input of orthographic images (``OrthoImages`` or ``KeyframeMap``).
+
+        The hand-crafted ``kcc_features`` (C = 2) or the learned network's channels
+        (``cfg.features``), then ``cfg.window``.
+        """
+        cfg = self.cfg
+        if self.features is None:
+            z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+        else:
+            z = self.features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+        return apply_window(z, cfg.window)
 
     def fit(self, z: Tensor) -> KCCFilter:
         """Train on (B, C, H, W) keyframe channels (see ``kcc_train``)."""

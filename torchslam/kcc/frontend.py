@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .correlator import KCCConfig, KCCFilter, KernelCorrelator, kcc_features
+from .correlator import FeatureKind, KCCConfig, KCCFilter, KernelCorrelator, kcc_features
+from .features import load_feature_net
 from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
 from .window import apply_window
@@ -103,25 +104,31 @@ def correlator_for(cfg: KCCConfig | KernelCorrelator) -> KernelCorrelator:
     """The correlator of ``cfg``: itself if it is one, else a fixed (non-learnable) one built from it.
 
     Its values are held in float64 so that they reach float32 and float64 inputs rounded once,
-    as a plain float would.
+    as a plain float would. With ``cfg.features == "learned"`` it holds the network read from
+    ``cfg.features_weights`` (empty: the weights that ship with torchslam, ``PACKAGED_WEIGHTS``).
     """
     if isinstance(cfg, KernelCorrelator):
         return cfg
-    return KernelCorrelator(cfg, dtype=torch.float64)
+    features = load_feature_net(cfg.features_weights or None) if cfg.features is FeatureKind.LEARNED else None
+    return KernelCorrelator(cfg, dtype=torch.float64, features=features)
 
 
-def kcc_channels(images: OrthoImages | KeyframeMap, cfg: KCCConfig) -> Tensor:
-    """(B, 2, H, W) KCC input of orthographic images: ``kcc_features`` windowed by ``apply_window``.
+def kcc_channels(images: OrthoImages | KeyframeMap, cfg: KCCConfig | KernelCorrelator) -> Tensor:
+    """(B, C, H, W) KCC input of orthographic images (``KernelCorrelator.channels``).
 
-    The one recipe for keyframe and frame alike (``cfg.channel_norm``, ``cfg.fill_holes``,
-    ``cfg.window``).
+    The one recipe for keyframe and frame alike: the hand-crafted ``kcc_features`` (C = 2,
+    ``cfg.channel_norm``, ``cfg.fill_holes``) or the learned channels (``cfg.features``), then
+    ``cfg.window``. Given settings rather than a correlator, learned channels use the weights
+    ``cfg.features_weights`` names (or the packaged ones).
     """
-    z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
-    return apply_window(z, cfg.window)
+    if isinstance(cfg, KCCConfig) and cfg.features is FeatureKind.HANDCRAFTED:
+        z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+        return apply_window(z, cfg.window)
+    return correlator_for(cfg).channels(images)
 
 
 def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | KernelCorrelator) -> KCCFilter:
-    """Train the correlator on keyframes: their channels (``kcc_features``), then ``kcc_train`` (Eq. (9)-(11)).
+    """Train the correlator on keyframes: their channels (``KernelCorrelator.channels``), then ``kcc_train`` (Eq. (9)-(11)).
 
     Args:
         kf_map: the keyframes' (fused) orthographic maps, (B, H, W) ``grey``, ``depth``, ``valid``.
@@ -131,8 +138,7 @@ def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | K
         KCCFilter, B keyframes.
     """
     corr = correlator_for(correlator)
-    cfg = corr.cfg
-    return corr.fit(kcc_channels(kf_map, cfg))
+    return corr.fit(corr.channels(kf_map))
 
 
 def track_step(
@@ -165,7 +171,7 @@ def track_step(
     k = corr.cfg
     size = (k.ortho_height, k.ortho_width)
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size)
-    x = kcc_channels(fr, k)
+    x = corr.channels(fr)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)

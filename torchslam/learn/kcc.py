@@ -33,6 +33,7 @@ from ..errors import ConfigError, ShapeError, check_float, check_shape
 from ..geometry import undistorted_rays
 from ..kcc import (
     KCCConfig,
+    OrthoImages,
     choose_resolution,
     kcc_channels,
     kcc_predict,
@@ -49,6 +50,7 @@ __all__ = [
     "kcc_pair_errors",
     "kcc_pairs_from_points",
     "kcc_shift_loss",
+    "ortho_pairs_from_points",
     "synthetic_kcc_pairs",
     "tum_kcc_pairs",
 ]
@@ -145,6 +147,27 @@ def kcc_pairs_from_points(
     Returns:
         KCCPairs in the dtype of the points.
     """
+    kf, fr, t = ortho_pairs_from_points(points_k, grey_k, valid_k, points_i, grey_i, valid_i, T_wk, T_wi, cfg)
+    return KCCPairs(kcc_channels(kf, cfg), kcc_channels(fr, cfg), kf.resolution, t)
+
+
+def ortho_pairs_from_points(
+    points_k: Tensor,
+    grey_k: Tensor,
+    valid_k: Tensor,
+    points_i: Tensor,
+    grey_i: Tensor,
+    valid_i: Tensor,
+    T_wk: Tensor,
+    T_wi: Tensor,
+    cfg: KCCConfig,
+) -> tuple[OrthoImages, OrthoImages, Tensor]:
+    """The orthographic images behind ``kcc_pairs_from_points`` (same arguments), before any channels.
+
+    Returns:
+        The keyframes' images (at the resolution chosen for them), the frames' images (rotated
+        into the keyframes' attitude, same resolution) and the (B, 2) true ``t_xy``, metres.
+    """
     d: dict[str, int] = {}
     check_shape(points_k, "B N 3", "points_k", d)
     check_shape(points_i, "B N 3", "points_i", d)
@@ -155,9 +178,8 @@ def kcc_pairs_from_points(
     kf = orthographic_project(points_k, grey_k, valid_k, None, r, size)
     R_ki = (T_wk[:, :3, :3].transpose(1, 2) @ T_wi[:, :3, :3]).to(points_i.dtype)
     fr = orthographic_project(points_i, grey_i, valid_i, R_ki, r, size)
-    z, x = kcc_channels(kf, cfg), kcc_channels(fr, cfg)
     t = content_translation(T_wk.to(torch.float64), T_wi.to(torch.float64))[:, :2].to(points_k.dtype)
-    return KCCPairs(z, x, r, t)
+    return kf, fr, t
 
 
 def _pair_indices(frames: int, keyframe_step: int, gaps: Sequence[int]) -> tuple[list[int], list[int]]:

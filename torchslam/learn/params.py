@@ -21,10 +21,7 @@ with ``weights_only=True``, so loading one never runs code::
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
-import pickle
-import re
 import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -33,20 +30,20 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..errors import ConfigError, DataFormatError
+from ..checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, load_checkpoint
+from ..errors import ConfigError
 from ..optim import positive_parameter, positive_value
 
 __all__ = [
     "CHECKPOINT_FORMAT",
     "LearnableParams",
+    "checkpoint_overrides",
     "checkpoint_values",
     "learnable",
     "load_checkpoint",
     "save_checkpoint",
 ]
 
-CHECKPOINT_FORMAT = "torchslam-params"
-CHECKPOINT_VERSION = 1
 
 
 def _field_type(cls: type, name: str) -> Any:
@@ -225,59 +222,6 @@ def save_checkpoint(path: str | os.PathLike, params: nn.Module, extra: Mapping[s
     return path
 
 
-def _load_failure(exc: Exception) -> str:
-    """One line saying why ``torch.load(weights_only=True)`` refused a file.
-
-    PyTorch's own message for a refused pickle spans several lines of advice (ending in how to
-    load the file with ``weights_only=False``, which would run its code); only the reason is kept.
-    """
-    text = str(exc)
-    if isinstance(exc, pickle.UnpicklingError) and "Weights only load failed" in text:
-        found = re.search(r"GLOBAL (\S+) was not an allowed global", text)
-        if found:
-            return (
-                f"refused as an unsafe pickle that would import {found.group(1)}; torchslam reads "
-                "checkpoints as plain data only, so that loading one never runs code"
-            )
-        reason = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else ""
-        reason = " ".join(reason.split("Check the documentation")[0].split())
-        return f"not plain pickled data: {reason}" if reason else "not plain pickled data"
-    if isinstance(exc, EOFError):
-        return "the file ends early"
-    first = next((line.strip() for line in text.splitlines() if line.strip()), "")
-    first = first.split(". ")[0][:200]
-    return f"{exc.__class__.__name__}: {first}" if first else exc.__class__.__name__
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a checkpoint written by :func:`save_checkpoint` (``weights_only=True``: no code runs).
-
-    Returns:
-        The stored dict (``format``, ``kind``, ``config_type``, ``values``, ``state_dict``, ``extra``...).
-
-    Raises:
-        DataFormatError: naming the file when it is missing, unreadable or not such a checkpoint.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(f"{path}: no such checkpoint file")
-    try:
-        doc = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle, zip and weights-only errors all mean "not a checkpoint"
-        raise DataFormatError(f"{path}: not a readable torchslam checkpoint ({_load_failure(exc)})") from exc
-    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
-        raise DataFormatError(f"{path}: not a torchslam parameter checkpoint (no format: {CHECKPOINT_FORMAT!r})")
-    if doc.get("version") != CHECKPOINT_VERSION:
-        raise DataFormatError(f"{path}: checkpoint version {doc.get('version')!r}; this torchslam reads version {CHECKPOINT_VERSION}")
-    for key, kind in (("values", dict), ("state_dict", dict), ("extra", dict), ("kind", str)):
-        if not isinstance(doc.get(key), kind):
-            raise DataFormatError(f"{path}: checkpoint field {key!r} is missing or not a {kind.__name__}")
-    for key, v in doc["values"].items():
-        if not isinstance(key, str) or isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise DataFormatError(f"{path}: value {key!r} = {v!r} is not a finite number")
-    return doc
-
-
 def checkpoint_values(path: str | os.PathLike, config_cls: type, system: str | None = None) -> dict[str, float]:
     """Read a ``"config"`` checkpoint's values for a config class, checked against it.
 
@@ -294,7 +238,10 @@ def checkpoint_values(path: str | os.PathLike, config_cls: type, system: str | N
         ConfigError: naming the file when the checkpoint holds a module rather than config values,
             belongs to another config class (another system), or names an unknown or non-float key.
     """
-    doc = load_checkpoint(path)
+    return _config_values(load_checkpoint(path), path, config_cls, system)
+
+
+def _config_values(doc: dict[str, Any], path, config_cls: type, system: str | None) -> dict[str, float]:
     what = f"system {system!r} ({config_cls.__name__})" if system else config_cls.__name__
     if doc["kind"] != "config":
         raise ConfigError(
@@ -310,3 +257,36 @@ def checkpoint_values(path: str | os.PathLike, config_cls: type, system: str | N
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from exc
     return {k: float(v) for k, v in doc["values"].items()}
+
+
+# Module checkpoints that a run can apply, and the config values that select them: the module's
+# name -> the dotted key of the weights' path, and the keys set beside it.
+RUN_MODULES: dict[str, tuple[str, dict[str, str]]] = {
+    "KCCFeatureNet": ("kcc.features_weights", {"kcc.features": "learned"}),
+}
+
+
+def checkpoint_overrides(path: str | os.PathLike, config_cls: type, system: str | None = None) -> dict[str, Any]:
+    """The config overrides ``torchslam run --params CKPT`` applies for a checkpoint.
+
+    A ``"config"`` checkpoint gives its values (``checkpoint_values``). A ``"module"`` checkpoint
+    of a network a run can use (``RUN_MODULES``: the learned KCC channels) selects it: e.g.
+    ``{"kcc.features": "learned", "kcc.features_weights": "/abs/path/params.pt"}``.
+
+    Raises:
+        DataFormatError: for an unreadable file.
+        ConfigError: naming the file when the checkpoint fits neither, or not this system's config.
+    """
+    doc = load_checkpoint(path)
+    if doc["kind"] == "module" and doc.get("module") in RUN_MODULES:
+        key, beside = RUN_MODULES[doc["module"]]
+        base = config_cls()
+        node = base
+        for part in key.split(".")[:-1]:
+            node = getattr(node, part, None)
+        if node is None or not hasattr(node, key.split(".")[-1]):
+            what = f"system {system!r} ({config_cls.__name__})" if system else config_cls.__name__
+            raise ConfigError(f"{path}: this checkpoint holds {doc['module']} weights, which {what} does not use")
+        return {**beside, key: str(Path(path).expanduser().resolve())}
+    return _config_values(doc, path, config_cls, system)
+
