@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Build torchslam's wheel, install it into a fresh virtual environment WITHOUT the test extra,
-# and run the main job and a shipped preset by name from outside the checkout; fail unless each
-# run folder is complete. CI runs it after the test suite.
+# and run the main job, a shipped preset by name and the learned KCC channels (packaged weights)
+# from outside the checkout; fail unless each run folder is complete. CI runs it after the test suite.
 #   bash scripts/check_wheel.sh
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_setup.sh"
@@ -13,12 +13,14 @@ _say "wheel: building"
 "$py" -m pip wheel -q --no-deps -w "$work/dist" "$TORCHSLAM_ROOT" >"$work/build.log" 2>&1 \
     || { cat "$work/build.log" >&2; _fail wheel "pip wheel failed"; }
 wheel="$(ls "$work"/dist/torchslam-*.whl)"
-"$py" - "$wheel" <<'PY' || _fail wheel "the wheel lacks the shipped presets"
+"$py" - "$wheel" <<'PY' || _fail wheel "the wheel lacks the shipped presets or the learned KCC weights"
 import sys, zipfile
 names = zipfile.ZipFile(sys.argv[1]).namelist()
 presets = [n for n in names if n.startswith("torchslam/presets/") and n.endswith(".yaml")]
 print(f"setup: wheel: {sys.argv[1].rsplit('/', 1)[-1]}, {len(names)} files, presets: {', '.join(sorted(p.rsplit('/', 1)[-1] for p in presets))}", file=sys.stderr)
-sys.exit(0 if len(presets) >= 4 else 1)
+weights = "torchslam/kcc/weights/kcc_features.pt" in names
+print(f"setup: wheel: learned KCC channels' weights {'present' if weights else 'MISSING'}", file=sys.stderr)
+sys.exit(0 if len(presets) >= 4 and weights else 1)
 PY
 
 _say "wheel: fresh venv (no test extra)"
@@ -61,4 +63,5 @@ PY
 }
 check_run "$work/run-default" --max-frames 20
 check_run "$work/run-preset" --max-frames 20 --config nislam_fast
+check_run "$work/run-learned" --max-frames 20 --set kcc.features=learned
 _say "wheel: ok"

@@ -62,11 +62,12 @@ FULL = Size(B=64, height=480, width=640, frames=30, keyframes=5000, repeat=5)
 QUICK = Size(B=4, height=120, width=160, frames=8, keyframes=300, repeat=2)
 
 
-def _nislam_cfg(size: Size, **extra):
+def _nislam_cfg(size: Size, features: str = "handcrafted", **extra):
     from torchslam.config import config_from_dict
     from torchslam.systems.nislam import NISlamConfig
 
     kcc = {} if size is FULL else {"ortho_height": 90, "ortho_width": 120}
+    kcc["features"] = features
     return config_from_dict(NISlamConfig, {"attitude": "imu", "kcc": kcc, **extra})
 
 
@@ -133,6 +134,8 @@ def part_agreement(device: str, size: Size) -> list[dict]:
         sequences.append(TUMSequence(real, end=size.frames * 3))
     systems = {
         "nislam": lambda seq: _nislam_cfg(size, attitude="imu" if seq.groundtruth is None or "synthetic" in seq.name else "groundtruth"),
+        "nislam-learned-channels": lambda seq: _nislam_cfg(
+            size, features="learned", attitude="imu" if seq.groundtruth is None or "synthetic" in seq.name else "groundtruth"),
         "gcslam-dense": lambda seq: config_from_dict(GCSlamConfig, {"frontend": "dense"}),
     }
     for seq in sequences:

@@ -18,7 +18,7 @@ network weights (``kind: module``), not config values.
 
 Writes into ``--out DIR``: TensorBoard event files (loss, parameters, validation figures),
 ``params.pt`` (``torchslam.learn.save_checkpoint``), ``metrics.json`` and ``history.json`` (the
-logged scalars per step); prints the comparison
+logged scalars per step; ``--what features`` also plots them in ``curve.png``); prints the comparison
 of learned against default values. Usage::
 
     python scripts/train.py --what kcc --out logs/train-kcc [--steps 60] [--tum ../shared/data/tum_fr1_xyz --tum-frames 300]
@@ -97,6 +97,42 @@ def _line(name: str, a: dict, b: dict, keys: tuple[str, ...]) -> str:
     return f"{name:<34}" + "  ".join(f"{k} {a[k]:.4g} -> {b[k]:.4g}" for k in keys)
 
 
+def plot_history(history: list[dict], metrics: dict, path: Path) -> None:
+    """The training curve of ``--what features``: training loss per step, held-out error per evaluation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train = [(h["step"], h["train/loss"]) for h in history if "train/loss" in h]
+    val = [(h["step"], h["val/median_px"], h["val/score_px2"]) for h in history if "val/median_px" in h]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    if train:
+        steps, loss = zip(*train)
+        k = max(1, len(loss) // 30)  # a running mean over ~1/30 of the run
+        smooth = [sum(loss[max(0, i - k + 1): i + 1]) / len(loss[max(0, i - k + 1): i + 1]) for i in range(len(loss))]
+        axes[0].plot(steps, loss, color="tab:blue", alpha=0.25, lw=0.8, label="per step")
+        axes[0].plot(steps, smooth, color="tab:blue", label=f"running mean ({k} steps)")
+        axes[0].set_xlabel("step")
+        axes[0].set_ylabel("training objective (px², robust)")
+        axes[0].set_yscale("log")
+        axes[0].legend()
+    if val:
+        steps, med, score = zip(*val)
+        hc = metrics["val_handcrafted"]
+        axes[1].plot(steps, med, "o-", color="tab:green", label="learned: median shift error (px)")
+        axes[1].axhline(hc["median_px"], color="tab:green", ls="--", label="hand-crafted: median (px)")
+        axes[1].plot(steps, score, "s-", color="tab:red", label="learned: truncated MSE (px²)")
+        axes[1].axhline(hc["score_px2"], color="tab:red", ls="--", label="hand-crafted: truncated MSE (px²)")
+        axes[1].axvline(metrics["best_step"], color="grey", lw=0.8)
+        axes[1].set_xlabel("step")
+        axes[1].set_title(f"{metrics['val_pairs']} held-out synthetic pairs", fontsize=9)
+        axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -138,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     m["torch_threads"] = args.threads
     extra["metrics"] = json.loads(json.dumps(m))
     (out / "history.json").write_text(json.dumps(result.history))
+    if args.what == "features":
+        plot_history(result.history, m, out / "curve.png")
     ckpt = save_checkpoint(out / "params.pt", result.module, extra)
     (out / "metrics.json").write_text(json.dumps({"what": args.what, "train_config": extra["train_config"], **m}, indent=2))
     if args.what == "kcc":

@@ -102,6 +102,7 @@ def test_train_script_features_checkpoint_runs_with_params(tmp_path, capsys):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["train_config"]["width"] == 160 and metrics["train_config"]["hidden"] == 4
     assert json.loads((out / "history.json").read_text())[0]["step"] == 0
+    assert (out / "curve.png").stat().st_size > 0
     assert list(out.glob("events.out.tfevents.*"))
     # run --params selects the learned channels with this checkpoint
     system, _, _ = resolve_config("nislam", None, [], params=out / "params.pt")

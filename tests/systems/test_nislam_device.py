@@ -112,3 +112,24 @@ def test_audited_run_equals_the_cpu_run():
     refs, _ = _run(seqs, cfg, "cpu")
     for out, ref in zip(outs, refs):
         torch.testing.assert_close(out.T_wc.as_subclass(torch.Tensor), ref.T_wc, atol=1e-5, rtol=0)
+
+
+def test_learned_channels_stay_on_the_device_within_the_budget(tmp_path):
+    """``kcc.features=learned``: the network moves with the correlator; no more read-backs, no mixes."""
+    from torchslam.kcc import KCCFeatureNet
+    from torchslam.learn import save_checkpoint
+
+    torch.manual_seed(0)
+    net = KCCFeatureNet(2, 4, initial_weight=0.5)
+    ckpt = save_checkpoint(tmp_path / "features.pt", net, {"architecture": net.architecture()})
+    cfg = config_from_dict(NISlamConfig, {"attitude": "imu", "kcc": {**SMALL["kcc"], "features": "learned",
+                                                                     "features_weights": str(ckpt)}})
+    seqs = [_synthetic(3, frames=8)]
+    with device_audit() as audit:
+        (out,), steps = _run(seqs, cfg, DEVICE, audit)
+        finish_mixes = list(audit.mixed)
+    tracking = [n for n, _, kf in steps[1:] if not kf]
+    assert tracking and max(tracking) <= 3, (tracking, audit.summary())
+    assert sum(m for _, m, _ in steps) == 0 and finish_mixes == []
+    (ref,), _ = _run(seqs, cfg, "cpu")
+    torch.testing.assert_close(out.T_wc.as_subclass(torch.Tensor), ref.T_wc, atol=1e-5, rtol=0)

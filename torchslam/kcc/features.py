@@ -14,8 +14,8 @@ of a keyframe map or a frame, and returns ``C = 2 + learned`` channels for the c
   to (``kernel_correlation`` divides by ``N = C H W``), is that of the hand-crafted channels:
   σ, λ and the PSR thresholds keep their meaning.
 - The same code runs on any device; on the host the convolutions run channels-last (about 3x
-  faster on CPU for these shapes). Weights are cast to the input's dtype, so a float64 input
-  runs in float64 (``gradcheck``).
+  faster on CPU for these shapes). Weights are cast to the input's dtype and device, so a
+  float64 input runs in float64 (``gradcheck``).
 
 ``load_feature_net`` reads a checkpoint written by ``scripts/train.py --what features``
 (``torchslam.learn.save_checkpoint``); without a path it reads the weights that ship inside the
@@ -50,10 +50,10 @@ class KCCFeatureNet(nn.Module):
         learned: channels computed by the network, beside the two hand-crafted ones (``C = 2 + learned <= 8``).
         hidden: width of the two 3x3 convolutions.
         initial_weight: starting share ``w_c`` of each learned channel (the hand-crafted ones
-            share the rest of ``C``); small, so that training starts from the hand-crafted channels.
+            share the rest of ``C``); small, so that training starts near the hand-crafted channels.
     """
 
-    def __init__(self, learned: int = 2, hidden: int = 8, initial_weight: float = 0.1):
+    def __init__(self, learned: int = 2, hidden: int = 4, initial_weight: float = 0.3):
         super().__init__()
         if not (isinstance(learned, int) and 1 <= learned <= 6):
             raise ConfigError(f"learned: expected 1 to 6 learned channels (C = 2 + learned <= 8), got {learned!r}")
@@ -110,18 +110,18 @@ class KCCFeatureNet(nn.Module):
         x = torch.cat([h, m], dim=1)
         if is_host(x):
             x = x.contiguous(memory_format=torch.channels_last)
-        p = {name: v.to(dt) for name, v in self.named_parameters()}
-        y = F.relu(F.conv2d(x, p["conv1.weight"], p["conv1.bias"], padding=1))
-        y = F.relu(F.conv2d(y, p["conv2.weight"], p["conv2.bias"], padding=1))
-        # The 1x1 head as a product over channels: on channels-last data a matrix product, where
-        # a 1x1 convolution takes a slow path on the CPU (about 10x slower here).
-        B, _, H, W = y.shape
-        w_head = p["head.weight"][:, :, 0, 0]  # (learned, hidden)
-        f = torch.addmm(p["head.bias"], y.permute(0, 2, 3, 1).reshape(B * H * W, -1), w_head.t())
-        f = f.reshape(B, H, W, -1).permute(0, 3, 1, 2).contiguous()
-        f = standardize_masked(f, m)
+        # A no-op where the module was moved with its input (``NISlam`` moves its correlator).
+        p = {name: v.to(device=x.device, dtype=dt) for name, v in self.named_parameters()}
+        y = F.conv2d(x, p["conv1.weight"], p["conv1.bias"], padding=1)
+        y = F.relu(y) if y.requires_grad else F.relu_(y)  # in place where no graph needs the input
+        y = F.conv2d(y, p["conv2.weight"], p["conv2.bias"], padding=1)
+        y = F.relu(y) if y.requires_grad else F.relu_(y)
+        # The 1x1 head as a contraction over channels: a 1x1 convolution of channels-last data
+        # takes a slow path on the CPU (about 3x slower here).
+        f = torch.einsum("bchw,lc->blhw", y, p["head.weight"][:, :, 0, 0]) + p["head.bias"][:, None, None]
         scale = (self.channels * torch.softmax(p["channel_logits"], dim=0)).sqrt()
-        return torch.cat([h, f], dim=1) * scale[:, None, None]
+        f = standardize_masked(f.contiguous(), m) * scale[2:, None, None]
+        return torch.cat([h * scale[:2, None, None], f], dim=1)
 
 
 # (resolved path, modification time, size) -> (architecture, state dict): a run builds its

@@ -10,8 +10,14 @@ enter training, so they are a fair test of transfer.
 Objective (``feature_loss``), per pair, through the differentiable KCC of NI-SLAM Eq. (11),
 (17), (18):
 
-    e = (t_xy(soft arg-max) - t_xy_true) / r_k                       (pixels of the keyframe image)
+    e = (t_xy - t_xy_true) / r_k                                     (pixels of the keyframe image)
     loss = mean(c^2 log(1 + |e|^2 / c^2)) + psr_weight * mean((log PSR - log PSR_handcrafted)^2)
+
+``t_xy`` is the shift a run measures (``peak="refined"``: the integer peak refined by Newton
+iterations on the Fourier interpolant, differentiable through those iterations) or the soft
+arg-max of the response (``peak="soft"``). Both were measured (``FeatureTrainConfig.peak``): the
+soft arg-max, a weighted mean over the whole response, barely moved the hard peak's error, so
+training scores the refined peak by default.
 
 The shift term is the squared error for errors well under ``c`` (``robust_px``, 1 px) and grows
 only logarithmically beyond: a pair matched to a wrong peak tens of pixels away (a few per cent
@@ -236,6 +242,7 @@ def _channels(images: OrthoImages, cfg: KCCConfig, net: KCCFeatureNet | None) ->
 
 
 def _correlate(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | None, soft: bool):
+    """KCC of the pairs: soft arg-max shift (``soft``) or the run's peak (``cfg.subpixel`` refinement)."""
     z = _channels(pairs.keyframe, cfg, net)
     x = _channels(pairs.frame, cfg, net)
     filt = kcc_train(z, cfg.sigma, cfg.lam)
@@ -271,6 +278,7 @@ def feature_loss(
     reference_psr: Tensor,
     psr_weight: float = 0.1,
     robust_px: float = 1.0,
+    peak: str = "soft",
 ) -> FeatureLoss:
     """Soft arg-max shift error plus the PSR-shaped term, through the network and the correlator.
 
@@ -281,6 +289,9 @@ def feature_loss(
         reference_psr: (B,) PSR of the same pairs with the hand-crafted channels.
         psr_weight: weight of the PSR term.
         robust_px: scale ``c`` of the robust shift term, pixels.
+        peak: ``"soft"``, the soft arg-max shift, or ``"refined"``, the shift a run measures
+            (integer peak refined by ``cfg.subpixel``; differentiable through the Newton
+            iterations of the Fourier refinement, not through the integer peak).
 
     Returns:
         FeatureLoss.
@@ -289,7 +300,9 @@ def feature_loss(
         raise ConfigError(f"robust_px: expected a positive scale in pixels, got {robust_px!r}")
     if reference_psr.shape != (len(pairs),):
         raise ShapeError(f"reference_psr: expected ({len(pairs)},), got {tuple(reference_psr.shape)}")
-    pred = _correlate(pairs, cfg, net, soft=True)
+    if peak not in ("soft", "refined"):
+        raise ConfigError(f"peak: expected 'soft' or 'refined', got {peak!r}")
+    pred = _correlate(pairs, cfg, net, soft=peak == "soft")
     err = (pred.t_xy - pairs.t_xy) / pairs.resolution[:, None]
     c2 = robust_px**2
     shift = (c2 * torch.log1p(err.square().sum(1) / c2)).mean()
@@ -358,14 +371,20 @@ class FeatureTrainConfig:
         batch_size: pairs per step.
         psr_weight: weight of the PSR-shaped term.
         robust_px: scale of the robust shift term, pixels (``feature_loss``).
+        peak: the shift the objective scores (``feature_loss``): ``"refined"``, the run's own
+            estimate (integer peak refined by ``subpixel``), or ``"soft"``, the soft arg-max.
+            Measured on held-out seeds, 120 steps: refined took the median shift error from
+            0.25 to 0.16-0.18 px, soft left it at 0.26 px.
         seed: seeds the network's initialisation and the mini-batch sampling.
         eval_every: validate every this many steps.
     """
 
     learned: int = 2
-    hidden: int = 8
-    train_seeds: tuple[int, ...] = tuple(range(0, 16))
-    val_seeds: tuple[int, ...] = (100, 101, 102, 103)
+    hidden: int = 4
+    # Seeds apart from the synthetic sequences benchmarks and tests run (0-4, 100-104, ...), so
+    # that those stay unseen by the learned channels too.
+    train_seeds: tuple[int, ...] = tuple(range(1000, 1016))
+    val_seeds: tuple[int, ...] = (1100, 1101, 1102, 1103)
     frames: int = 90
     keyframe_step: int = 5
     gaps: tuple[int, ...] = (3, 8, 14, 20, 28)
@@ -377,12 +396,13 @@ class FeatureTrainConfig:
     blur_px: float = 6.0
     initial_weight: float = 0.3
     steps: int = 600
-    lr: float = 0.01
+    lr: float = 0.003
     batch_size: int = 6
     psr_weight: float = 0.1
     robust_px: float = 1.0
+    peak: str = "refined"
     seed: int = 0
-    eval_every: int = 25
+    eval_every: int = 50
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "learned": Limit(ge=1, le=6), "hidden": Limit(ge=1, le=64), "train_seeds": Limit(), "val_seeds": Limit(),
@@ -394,6 +414,8 @@ class FeatureTrainConfig:
 
     def __post_init__(self) -> None:
         check_limits(self)
+        if self.peak not in ("soft", "refined"):
+            raise ConfigError(f"peak: expected 'soft' or 'refined', got {self.peak!r}")
         if set(self.train_seeds) & set(self.val_seeds):
             raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(self.train_seeds) & set(self.val_seeds))}")
         if not self.train_seeds or not self.val_seeds:
@@ -461,7 +483,7 @@ def train_features(cfg: FeatureTrainConfig | None = None, base: NISlamConfig | N
         if order.numel() < cfg.batch_size:  # epochs of a fixed shuffle: every pair seen alike
             order = torch.cat([order, torch.randperm(len(train), generator=gen)])
         idx, order = order[: cfg.batch_size], order[cfg.batch_size :]
-        out = feature_loss(net, train.select(idx), kcc_cfg, ref_psr[idx], cfg.psr_weight, cfg.robust_px)
+        out = feature_loss(net, train.select(idx), kcc_cfg, ref_psr[idx], cfg.psr_weight, cfg.robust_px, cfg.peak)
         opt.zero_grad()
         out.loss.backward()
         opt.step()
@@ -474,7 +496,7 @@ def train_features(cfg: FeatureTrainConfig | None = None, base: NISlamConfig | N
     metrics["val_learned"] = evaluate_features(val, kcc_cfg, net)
     metrics["channel_weights"] = net.channel_weights().detach().tolist()
     metrics["seconds"] = time.perf_counter() - t0
-    monitor.hparams({"learned": cfg.learned, "hidden": cfg.hidden, "lr": cfg.lr, "steps": cfg.steps},
+    monitor.hparams({"learned": cfg.learned, "hidden": cfg.hidden, "lr": cfg.lr, "steps": cfg.steps, "peak": cfg.peak},
                     {"val_score_px2": metrics["val_learned"]["score_px2"],
                                                                            "val_median_px": metrics["val_learned"]["median_px"]})
     return TrainResult(net, metrics, history)
