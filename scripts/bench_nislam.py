@@ -190,6 +190,28 @@ def plot(result: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def paired_table(rows: list[dict], setting: str) -> str:
+    """Markdown: each (sequence, attitude) run at ``setting`` beside the default's, with the changes."""
+    base = {(r["sequence"], r["attitude"]): r for r in rows if r["setting"] == "default"}
+    out = [f"\n{setting} against the default (same sequences, same run of this script):\n",
+           "| group | sequence | attitude | ATE default → " + setting + " (cm) | change | RPE 1 / 10 / 30 frames, default → " + setting
+           + " (mm) | keyframes | frames/s end-to-end (ratio) | frames/s front-end (ratio) |",
+           "|---|---|---|---|---:|---|---|---|---|"]
+    for r in rows:
+        b = base.get((r["sequence"], r["attitude"]))
+        if r["setting"] != setting or b is None:
+            continue
+        rpe = lambda x: " / ".join("–" if v is None else f"{v:.1f}" for v in x["rpe_rmse_mm"].values())
+        change = 100 * (r["ate_rmse_m"] / b["ate_rmse_m"] - 1)
+        out.append(
+            f"| {r['group']} | {r['sequence']} | {r['attitude']} | {100 * b['ate_rmse_m']:.2f} → {100 * r['ate_rmse_m']:.2f} | "
+            f"{change:+.0f} % | {rpe(b)} → {rpe(r)} | {b['keyframes']} → {r['keyframes']} | "
+            f"{b['fps_end_to_end']:.1f} → {r['fps_end_to_end']:.1f} ({r['fps_end_to_end'] / b['fps_end_to_end']:.2f}) | "
+            f"{b['fps_frontend']:.1f} → {r['fps_frontend']:.1f} ({r['fps_frontend'] / b['fps_frontend']:.2f}) |"
+        )
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=os.environ.get("TORCHSLAM_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data")))
@@ -236,6 +258,9 @@ def main() -> None:
             vals = [100 * r["ate_rmse_m"] for r in rows if r["setting"] == setting]
             if vals:
                 print(f"mean ATE, {group}, {setting}: {sum(vals) / len(vals):.2f} cm over {len(vals)} runs")
+    for setting in settings:
+        if setting != "default" and "default" in settings:
+            print(paired_table(result["accuracy"], setting))
     print("\n| device | B | frames/s (median) | frames/s (best) |\n|---|---:|---:|---:|")
     for r in result["batched_kcc"]:
         print(f"| {r['device']} | {r['B']} | {r['frames_per_s_median']:.1f} | {r['frames_per_s_best']:.1f} |")
