@@ -399,8 +399,17 @@ def _level_camera(cam: PinholeCamera, factor: float, w: int, h: int) -> PinholeC
     return replace(cam.scaled(factor), width=w, height=h)
 
 
+def _pool3(x: Tensor, op, fill: float) -> Tensor:
+    """3x3 maximum (``op=torch.maximum``, ``fill=-inf``) or minimum of every pixel's neighbourhood,
+    outside pixels ignored, as ``max_pool2d(x, 3, stride=1, padding=1)``: separable, rows then
+    columns, four elementwise comparisons (the same values, several times faster on a CPU)."""
+    p = F.pad(x, (1, 1, 1, 1), value=fill)
+    rows = op(op(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
+    return op(op(rows[..., :-2, :], rows[..., 1:-1, :]), rows[..., 2:, :])
+
+
 def _min_pool3(x: Tensor) -> Tensor:
-    return -F.max_pool2d(-x, 3, stride=1, padding=1)
+    return _pool3(x, torch.minimum, float("inf"))
 
 
 def _build_level(cam: PinholeCamera, grey: Tensor, depth: Tensor, inside: Tensor, cfg: DenseConfig) -> DenseLevel:
@@ -413,7 +422,7 @@ def _reference(grey: Tensor, depth: Tensor, inside: Tensor, edge_tolerance: floa
     g = kornia.filters.spatial_gradient(grey, mode="sobel", normalized=True)[:, 0]  # (B, 2, h, w)
     dz = kornia.filters.spatial_gradient(depth, mode="sobel", normalized=True)[:, 0]
     # Invalid depth is 0, so a positive 3x3 minimum means all nine are valid (the padding is ignored).
-    zmax = F.max_pool2d(depth, 3, stride=1, padding=1)
+    zmax = _pool3(depth, torch.maximum, -float("inf"))
     zmin = _min_pool3(depth)
     smooth = (zmin > 0) & (zmax - zmin <= edge_tolerance * depth)
     inside3 = _min_pool3(inside)
@@ -1025,6 +1034,14 @@ class _Pixels:
     valid: Tensor   # (B, M) bool, valid depth (False on padding)
 
 
+@functools.lru_cache(maxsize=16)
+def _pixel_pattern(h: int, w: int, step: int, device: torch.device) -> Tensor:
+    """(1, h*w) bool, ``(row + column) % step == 0`` (built once per size; never modified by callers)."""
+    r = torch.arange(h, device=device)[:, None]
+    c = torch.arange(w, device=device)[None, :]
+    return ((r + c) % step == 0).reshape(1, -1)
+
+
 def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
     """The valid-depth pixels of a level (only they give residuals), in raster order.
 
@@ -1035,12 +1052,10 @@ def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
     h, w = lv.grey.shape[-2:]
     keep = lv.valid
     if step > 1:
-        r = torch.arange(h, device=keep.device)[:, None]
-        c = torch.arange(w, device=keep.device)[None, :]
-        keep = keep & ((r + c) % step == 0).reshape(1, -1)
+        keep = keep & _pixel_pattern(h, w, step, keep.device)
     if B == 1:
         # One frame (tracking): the kept indices directly, no padding.
-        if _host(keep):  # NumPy's mask indices and takes: several times torch's speed on the CPU
+        if _host(keep):  # NumPy's mask indices and row takes: several times torch's speed on the CPU
             idx = flat_nonzero(keep[0])
             take = index_select
         else:
@@ -1048,7 +1063,7 @@ def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
             take = torch.index_select
         if idx.numel() == 0:
             return _Pixels(lv.grey.reshape(1, -1)[:, :1], lv.points[:, :1], torch.zeros_like(keep[:, :1]))
-        return _Pixels(take(lv.grey.reshape(1, -1), 1, idx), take(lv.points, 1, idx), keep.new_ones(1, idx.numel()))
+        return _Pixels(take(lv.grey.reshape(-1), 0, idx)[None], take(lv.points[0], 0, idx)[None], keep.new_ones(1, idx.numel()))
     count = keep.sum(-1)
     M = max(int(count.max()), 1)
     pos = torch.where(keep, keep.cumsum(-1) - 1, M)  # slot of each kept pixel; M collects the rest
