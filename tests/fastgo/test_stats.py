@@ -61,6 +61,22 @@ def test_padded_masked_equals_ragged():
     assert torch.allclose(c.as_vector(), PairStats.from_correspondences(pi[:1], pj[:1]).as_vector())
 
 
+def test_gram_of_weighted_rows_equals_ragged():
+    g = torch.Generator().manual_seed(4)
+    sizes = [6, 11]
+    pi, pj, w = ragged(g, sizes)
+    G = torch.stack([
+        (torch.cat([torch.ones(k, 1, dtype=torch.float64), a, b], 1) * c[:, None]).T @ torch.cat([torch.ones(k, 1, dtype=torch.float64), a, b], 1)
+        for k, a, b, c in zip(sizes, pi, pj, w)
+    ])
+    st = PairStats.from_gram(G, torch.tensor(sizes))
+    ref = PairStats.from_correspondences(pi, pj, w)
+    torch.testing.assert_close(st.as_vector(), ref.as_vector(), rtol=1e-12, atol=1e-12)
+    assert st.count.tolist() == sizes
+    with pytest.raises(ShapeError, match="G"):
+        PairStats.from_gram(G[:, :6], torch.tensor(sizes))
+
+
 def test_merge_is_union_and_swap_reverses():
     g = torch.Generator().manual_seed(2)
     pi, pj, w = ragged(g, [6, 4])

@@ -59,3 +59,16 @@ def test_bad_input_names_the_argument():
         solve_pair_steps(H, torch.zeros(3, 6, dtype=torch.float64))
     with pytest.raises(DTypeError, match="H: expected float32 or float64"):
         solve_pair_steps(H.to(torch.int64), torch.zeros(2, 6, dtype=torch.float64))
+
+
+def test_host_numpy_path_agrees_with_torch_path():
+    H = _spd(5, torch.float64, seed=5)
+    g = torch.randn(5, 6, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    host = solve_pair_steps(H, g, host=True)
+    torch.testing.assert_close(host.delta, solve_pair_steps(H, g).delta, rtol=0, atol=1e-12)
+    assert host.solved.all()
+    # A pair that is not positive definite sends the whole batch down torch's path.
+    H_bad = torch.cat([H, torch.zeros(1, 6, 6, dtype=torch.float64)])
+    bad = solve_pair_steps(H_bad, torch.cat([g, g[:1]]), host=True)
+    assert bad.solved.tolist() == [True] * 5 + [False]
+    torch.testing.assert_close(bad.delta[:5], host.delta, rtol=0, atol=1e-12)

@@ -250,7 +250,7 @@ def test_undistortion_recovers_the_pinhole_image(synthetic):
     fixed = prepare_dense_frame(rgb_d, depth_d, cam_d, cfg).levels[0]
     ignored = prepare_dense_frame(rgb_d, depth_d, dataclasses.replace(cam, distortion=None), cfg).levels[0]
     assert fixed.camera == ideal.camera  # the prepared frame is an ideal pinhole
-    m = (fixed.reference[:, 7] > 0) & (ideal.depth[:, 0] > 0)
+    m = (fixed.reference[:, dense_module._IOK] > 0) & (ideal.depth[:, 0] > 0)
     m[..., :8, :] = False
     m[..., -8:, :] = False
     assert m.float().mean() > 0.7

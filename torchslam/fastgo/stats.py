@@ -167,6 +167,27 @@ class PairStats:
         )
 
     @staticmethod
+    def from_gram(G: Tensor, count: Tensor) -> "PairStats":
+        """Statistics of M pairs from the Gram matrices of their weighted correspondence rows.
+
+        Args:
+            G: (M, 7, 7) ``sum_k w_k x_k x_k^T`` over each pair's correspondences, with
+                ``x = [1, p_i, p_j]`` (points in metres): ``n = G[0, 0]``, ``s_i = G[0, 1:4]``,
+                ``s_j = G[0, 4:7]`` and ``S_ii``, ``S_ij``, ``S_jj`` its 3 x 3 blocks. One matrix
+                product of the rows gives every sum at once.
+            count: (M,) int64 correspondences of each pair (unweighted).
+
+        Returns:
+            Statistics of the M pairs.
+        """
+        check_shape(G, "M 7 7", "G")
+        check_float(G, "G")
+        return PairStats(
+            n=G[:, 0, 0], count=count, s_i=G[:, 0, 1:4], s_j=G[:, 0, 4:7],
+            S_ii=G[:, 1:4, 1:4], S_ij=G[:, 1:4, 4:7], S_jj=G[:, 4:7, 4:7],
+        )
+
+    @staticmethod
     def _reduce(pi: Tensor, pj: Tensor, w: Tensor | None, seg: Tensor, M: int, lengths: Tensor) -> "PairStats":
         # One (K, 34) row per correspondence (weight, first moments, the three outer products),
         # reduced by one segment sum; chunked so memory stays bounded for millions of points.

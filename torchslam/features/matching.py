@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..devices import index_select
 from ..errors import ConfigError, DTypeError, ShapeError, check_shape, parse_choice
 
 __all__ = [
@@ -308,12 +309,18 @@ def hamming_distance_indexed(w1: Tensor, idx1: Tensor, w2: Tensor, idx2: Tensor,
     cpu = w1.device.type == "cpu"
     step = h if not cpu else max(1, chunk)
     for s in range(0, h, max(step, 1)):
-        x = w1.index_select(0, idx1[s : s + step])
-        x ^= w2.index_select(0, idx2[s : s + step])
+        x = index_select(w1, 0, idx1[s : s + step])
+        x ^= index_select(w2, 0, idx2[s : s + step])
         if cpu and _NP_POPCOUNT is not None:
             # NumPy >= 2 counts bits with the CPU's popcount instruction (of the unsigned words: it
             # counts a signed integer's absolute value): one call, not the SWAR steps.
-            out[s : s + step] = torch.from_numpy(_NP_POPCOUNT(x.numpy().view(np.uint64)).sum(-1, dtype=np.int64))
+            # The four words' counts are added column by column: NumPy's reduction over a last
+            # axis of four is several times slower than three additions.
+            c = _NP_POPCOUNT(x.numpy().view(np.uint64))  # (chunk, 4) uint8
+            o = out[s : s + step].numpy()
+            np.add(c[:, 0], c[:, 1], out=o, dtype=np.int64, casting="unsafe")
+            o += c[:, 2]
+            o += c[:, 3]
         else:
             torch.sum(_popcount64_(x), -1, out=out[s : s + step])
     return out

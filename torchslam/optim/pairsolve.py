@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from ..devices import numpy_viewable
 from ..errors import check_float, check_shape
 
 __all__ = ["PairStep", "solve_pair_steps"]
@@ -31,12 +33,15 @@ class PairStep:
     solved: Tensor
 
 
-def solve_pair_steps(H: Tensor, g: Tensor) -> PairStep:
+def solve_pair_steps(H: Tensor, g: Tensor, host: bool = False) -> PairStep:
     """Solve ``H delta = -g`` for each of B pairs by Cholesky factorisation.
 
     Args:
         H: (B, 6, 6) symmetric Gauss-Newton matrices ``J^T W J``.
         g: (B, 6) gradients ``J^T W r``, same dtype.
+        host: solve plain host tensors in NumPy (the same steps to round-off, a tenth of torch's
+            fixed cost for a few 6x6 systems). Off by default, so that a device path exercised
+            on the host (the synchronisation budgets) runs torch's operations.
 
     Returns:
         PairStep: the steps, 0 for pairs whose ``H`` is not positive definite or whose step is not
@@ -47,6 +52,10 @@ def solve_pair_steps(H: Tensor, g: Tensor) -> PairStep:
     check_shape(g, "B 6", "g", dims)
     check_float(H, "H")
     check_float(g, "g")
+    if host and numpy_viewable(H) and numpy_viewable(g) and H.shape[0]:
+        step = _solve_numpy(H, g)
+        if step is not None:
+            return step
     L, info = torch.linalg.cholesky_ex(H)
     solved = info == 0
     # A failed factor is replaced by the identity so that its (discarded) solve stays finite;
@@ -55,3 +64,18 @@ def solve_pair_steps(H: Tensor, g: Tensor) -> PairStep:
     delta = -torch.cholesky_solve(g[..., None], L)[..., 0]
     solved = solved & torch.isfinite(delta).all(-1)
     return PairStep(torch.where(solved[:, None], delta, torch.zeros_like(delta)), solved)
+
+
+def _solve_numpy(H: Tensor, g: Tensor) -> PairStep | None:
+    """The steps in NumPy on the host (a tenth of torch's fixed cost for a few 6x6 systems), or
+    None when some ``H`` is not positive definite (NumPy's Cholesky then fails for the whole
+    batch; torch's path tells which pairs)."""
+    Hn, gn = H.numpy(), g.numpy()
+    try:
+        np.linalg.cholesky(Hn)
+    except np.linalg.LinAlgError:
+        return None
+    delta = -np.linalg.solve(Hn, gn[..., None])[..., 0]
+    solved = np.isfinite(delta).all(-1)
+    delta = np.where(solved[:, None], delta, 0.0)
+    return PairStep(torch.from_numpy(delta), torch.from_numpy(solved))

@@ -45,11 +45,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.nn.utils.rnn import pad_sequence
 
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
+from ..devices import flat_nonzero, index_select, is_host, numpy_viewable, repeat_counts
 from ..fastgo import PairStats
 from ..features import (
     MatchBackend,
@@ -375,11 +377,43 @@ def _uniform(seed: int, stream: int | Tensor, *index: Tensor) -> Tensor:
         float64 tensor of the indices' broadcast shape; 53 random bits each.
     """
     dev = index[0].device
+    if is_host(index[0]) and (not isinstance(stream, Tensor) or is_host(stream)):
+        return torch.from_numpy(_uniform_numpy(seed, stream, index))
     h = _mix(torch.tensor(_s64(seed), dtype=torch.int64, device=dev))
     h = _mix(h + stream)
     for idx in index:
         h = _mix(h + idx)
     return _shr(h, 11).to(torch.float64) * 2.0**-53
+
+
+_GOLDEN_U, _MIX1_U, _MIX2_U = (np.uint64(c) for c in (0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB))
+
+
+def _mix_numpy(z: np.ndarray) -> np.ndarray:
+    """:func:`_mix` on uint64 (NumPy's shifts of unsigned words are logical, its arithmetic wraps)."""
+    z = z + _GOLDEN_U
+    z ^= z >> np.uint64(30)
+    z *= _MIX1_U
+    z ^= z >> np.uint64(27)
+    z *= _MIX2_U
+    z ^= z >> np.uint64(31)
+    return z
+
+
+def _uniform_numpy(seed: int, stream, index) -> np.ndarray:
+    """:func:`_uniform` on host tensors in NumPy, the same bits: the hash's dozen operations per
+    step cost torch's fixed overhead each, several times NumPy's on these small arrays."""
+
+    def words(x) -> np.ndarray:
+        return x.numpy().astype(np.uint64) if isinstance(x, Tensor) else np.array(x % (1 << 64), dtype=np.uint64)
+
+    with np.errstate(over="ignore"):
+        h = _mix_numpy(np.array([seed % (1 << 64)], dtype=np.uint64))
+        h = _mix_numpy(h + words(stream))
+        for idx in index:
+            h = _mix_numpy(h + words(idx))
+        h = h.reshape(np.broadcast_shapes(*(tuple(i.shape) for i in index), tuple(getattr(stream, "shape", ()))))
+        return (h >> np.uint64(11)).astype(np.float64) * 2.0**-53
 
 
 def _base_seed(cfg: SparseConfig, generator: torch.Generator | None) -> int:
@@ -418,7 +452,10 @@ def _isometry_filter(p_i: Tensor, p_j: Tensor, valid: Tensor, cfg: SparseConfig,
     # only where tol < 1), so squared distances suffice; d_j = 0 never passes.
     lo2 = torch.where(tol < 1, (1 - tol) ** 2, torch.full_like(tol, -1.0))[..., None]  # (B, M, 1)
     hi2 = ((1 + tol) ** 2)[..., None]
-    pts = torch.cat([p_i, p_j], -1)  # (B, M, 6)
+    # Both frames' coordinates as six planes over the B * M matches, so a round's partners are
+    # one gather and its squared distances sums of contiguous planes.
+    planes = torch.cat([p_i, p_j], -1).permute(2, 0, 1).reshape(6, B * M)
+    row0 = (torch.arange(B, device=dev) * M)[:, None]  # (B, 1) first row of each pair
     kept = valid.clone()
     for r in range(R):
         count = kept.sum(-1)  # (B,)
@@ -427,12 +464,11 @@ def _isometry_filter(p_i: Tensor, p_j: Tensor, valid: Tensor, cfg: SparseConfig,
         # Uniform over the other kept matches: draw among count - 1 ranks and skip one's own.
         draw = (u_all[r][None] * (count - 1).clamp_min(0)[:, None, None]).floor().to(torch.int64)
         draw = draw + (draw >= rank[..., None]).to(torch.int64)
-        partner = order.gather(1, draw.clamp(0, M - 1).reshape(B, -1))  # (B, M N)
-        g = pts.gather(1, partner[..., None].expand(-1, -1, 6)).reshape(B, M, N, 6)
-        d = pts[:, :, None] - g
+        partner = (order + row0).reshape(-1).index_select(0, (draw.clamp(0, M - 1) + row0[..., None]).reshape(-1))
+        d = planes.view(6, B, M, 1) - index_select(planes, 1, partner).view(6, B, M, N)
         d = d * d
-        di2 = d[..., 0] + d[..., 1] + d[..., 2]  # (B, M, N)
-        dj2 = d[..., 3] + d[..., 4] + d[..., 5]
+        di2 = d[0] + d[1] + d[2]  # (B, M, N)
+        dj2 = d[3] + d[4] + d[5]
         passed = (di2 < hi2 * dj2) & (di2 > lo2 * dj2) & (dj2 > 0)  # Eq. (22) for one partner
         kept = kept & (count >= 2)[:, None] & passed.any(-1)
     return kept
@@ -569,7 +605,10 @@ def _ransac_from_samples(p_i: Tensor, p_j: Tensor, valid: Tensor, idx: Tensor, o
     step = max(1, _SCORE_BLOCK // max(1, B * Mc))
     for h0 in range(0, H, step):
         sq = torch.bmm(f_h[:, h0 : h0 + step], f_m)  # (B, h, Mc)
-        counts[:, h0 : h0 + step] = (sq < limit[:, None, :]).sum(-1)
+        if numpy_viewable(sq):  # NumPy counts a comparison's True entries about twice as fast
+            counts[:, h0 : h0 + step] = torch.from_numpy(np.count_nonzero(sq.numpy() < limit.numpy()[:, None, :], axis=-1))
+        else:
+            counts[:, h0 : h0 + step] = (sq < limit[:, None, :]).sum(-1)
     good = ok[:, None] & torch.isfinite(T_h).flatten(-2).all(-1)
     counts = torch.where(good, counts, torch.full_like(counts, -1))
     best = counts.argmax(-1)  # first hypothesis on ties
@@ -666,7 +705,7 @@ def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: Sparse
         G = torch.bmm((f * w[..., None]).transpose(1, 2), f[..., :4])  # (B, 10, 4) weighted moments
         Hm = (G[:, :4].reshape(B, 16) @ to_H).view(B, 6, 6)
         g = G[:, 4:, 0]  # [sum w r, sum w q x r] = J^T W r
-        gn = solve_pair_steps(Hm, g)
+        gn = solve_pair_steps(Hm, g, host=True)
         step = gn.delta * (gn.solved & (inl.sum(-1) >= 3))[:, None]
         T = torch.linalg.matrix_exp((step @ to_hat).view(B, 4, 4)) @ T
     inl, r = _inliers_at(p_i, p_j, mask, T, cfg.inlier_threshold)
@@ -798,28 +837,28 @@ def _guided_index(
     start = torch.where(base + c0 > 0, ends.index_select(0, (base + c0 - 1).clamp_min(0).reshape(-1)).view_as(base), 0)
     cnt = ends.index_select(0, (base + c1).reshape(-1)).view_as(base) - start
     cnt = (cnt * valid_j[..., None]).reshape(-1)
-    start = start.reshape(-1)
     total = int(cnt.sum())
     if total == 0:
         return none
+    # Frame i's positions, words and local indices in cell order, so a candidate's position in
+    # the sorted list addresses them directly (one gather each, no detour through ``perm``).
+    uv_s = index_select(uv_i.reshape(-1, 2), 0, perm)
+    w_s = index_select(desc_i.reshape(-1, 32).contiguous().view(torch.int64), 0, perm)
+    local_s = perm % Ki
+    # Candidate p of run s sits at sorted position p - first[s] + start[s]; runs of one query are
+    # consecutive, so its query is the run's query repeated over the run.
     runs = 2 * k + 1
-    slot = torch.repeat_interleave(torch.arange(cnt.numel(), device=dev), cnt)  # (P,) (query, row) of each candidate
-    first = torch.cumsum(cnt, 0) - cnt
-    pos = torch.arange(total, device=dev) - first.index_select(0, slot) + start.index_select(0, slot)
-    cand = perm.index_select(0, pos)  # flat frame-i index b * Ki + i
-    query = slot // runs  # flat frame-j index b * Kj + j
-    ui, vi = uv_i[..., 0].reshape(-1), uv_i[..., 1].reshape(-1)
-    uj, vj = uv_j[..., 0].reshape(-1), uv_j[..., 1].reshape(-1)
-    du = ui.index_select(0, cand) - uj.index_select(0, query)
-    dv = vi.index_select(0, cand) - vj.index_select(0, query)
-    near = (du * du + dv * dv <= radius * radius).nonzero().squeeze(-1)
-    cand, query = cand.index_select(0, near), query.index_select(0, near)
-    w_i = desc_i.reshape(-1, 32).contiguous().view(torch.int64)
+    shift = start.reshape(-1) - (torch.cumsum(cnt, 0) - cnt)
+    pos = torch.arange(total, device=dev) + repeat_counts(shift, cnt)
+    query = repeat_counts(torch.arange(B * Kj, device=dev), cnt.view(-1, runs).sum(-1))
+    d = index_select(uv_s, 0, pos) - index_select(uv_j.reshape(-1, 2), 0, query)
+    d = d * d
+    near = flat_nonzero(d[:, 0] + d[:, 1] <= radius * radius)
+    pos, query = index_select(pos, 0, near), index_select(query, 0, near)
     w_j = desc_j.reshape(-1, 32).contiguous().view(torch.int64)
-    dist = hamming_distance_indexed(w_j, query, w_i, cand)
+    dist = hamming_distance_indexed(w_j, query, w_s, pos)
     # Nearest candidate per query, the lowest frame-i index on ties (as brute force does).
-    local = cand % Ki
-    code = dist * Ki + local
+    code = dist * Ki + index_select(local_s, 0, pos)
     best = torch.full((B * Kj,), (_BITS_MAX + 1) * Ki, dtype=torch.int64, device=dev)
     best.scatter_reduce_(0, query, code, reduce="amin")
     keep = (best // Ki) <= max_distance
