@@ -47,13 +47,11 @@ from ..kcc import (
     FeatureKind,
     KCCConfig,
     KCCFeatureNet,
+    KernelCorrelator,
     OrthoImages,
-    kcc_features,
     kcc_predict,
-    kcc_train,
     rgbd_to_points,
 )
-from ..kcc.window import apply_window
 from ..systems.monitor import Monitor
 from ..systems.nislam import NISlamConfig
 from .kcc import TRAJECTORIES, _check_gaps, _pair_indices, ortho_pairs_from_points
@@ -233,23 +231,20 @@ def synthetic_ortho_pairs(
     return OrthoPairs.cat(parts)
 
 
-def _channels(images: OrthoImages, cfg: KCCConfig, net: KCCFeatureNet | None) -> Tensor:
-    if net is None:
-        z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
-    else:
-        z = net(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
-    return apply_window(z, cfg.window)
+def _correlator(cfg: KCCConfig, net: KCCFeatureNet | None) -> KernelCorrelator:
+    """The run's correlator for ``cfg`` with ``net``'s channels (``None``: the hand-crafted ones)."""
+    kind = FeatureKind.HANDCRAFTED if net is None else FeatureKind.LEARNED
+    return KernelCorrelator(dataclasses.replace(cfg, features=kind), dtype=torch.float64, features=net)
 
 
 def _correlate(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | None, soft: bool):
     """KCC of the pairs: soft arg-max shift (``soft``) or the run's peak (``cfg.subpixel`` refinement)."""
-    z = _channels(pairs.keyframe, cfg, net)
-    x = _channels(pairs.frame, cfg, net)
-    filt = kcc_train(z, cfg.sigma, cfg.lam)
+    corr = _correlator(cfg, net)
+    x = corr.channels(pairs.frame)
+    filt = corr.fit(corr.channels(pairs.keyframe))
     if soft:
         return kcc_predict(x, filt, cfg.sigma, pairs.resolution, psr_window=cfg.psr_window, temperature=cfg.temperature)
-    return kcc_predict(x, filt, cfg.sigma, pairs.resolution, cfg.subpixel, cfg.subpixel_smoothing,
-                       cfg.subpixel_iterations, cfg.psr_window)
+    return corr(x, filt, pairs.resolution)
 
 
 @dataclass(frozen=True)
