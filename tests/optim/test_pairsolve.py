@@ -72,3 +72,39 @@ def test_host_numpy_path_agrees_with_torch_path():
     bad = solve_pair_steps(H_bad, torch.cat([g, g[:1]]), host=True)
     assert bad.solved.tolist() == [True] * 5 + [False]
     torch.testing.assert_close(bad.delta[:5], host.delta, rtol=0, atol=1e-12)
+
+
+def test_host_numpy_path_never_raises_on_non_finite_or_singular_pairs():
+    """NumPy's Cholesky lets NaN through and its LU solve raises on what it finds singular: the
+    host path then falls back to torch's, which marks the pairs (a loop registration of 7-Scenes
+    raised LinAlgError here)."""
+    H = _spd(3, torch.float64, seed=7)
+    g = torch.randn(3, 6, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    ref = solve_pair_steps(H, g)
+    for name, H_bad, g_bad in (
+        ("nan H", torch.cat([H, torch.full((1, 6, 6), float("nan"), dtype=torch.float64)]), torch.cat([g, g[:1]])),
+        ("inf g", torch.cat([H, H[:1]]), torch.cat([g, torch.full((1, 6), float("inf"), dtype=torch.float64)])),
+        ("rank 1", torch.cat([H, torch.ones(1, 6, 6, dtype=torch.float64)]), torch.cat([g, g[:1]])),
+    ):
+        step = solve_pair_steps(H_bad, g_bad, host=True)
+        assert step.solved.tolist() == [True, True, True, False], name
+        assert torch.equal(step.delta[3], torch.zeros(6, dtype=torch.float64)), name
+        torch.testing.assert_close(step.delta[:3], ref.delta, rtol=0, atol=1e-12)
+    # The matrix that raised: a degenerate loop pair (inliers on a line) whose Cholesky factor
+    # exists in round-off while the LU solve meets an exact zero pivot. Torch's path solves it.
+    a, b, c, d = 0.09406477010494602, 0.26619864763409734, 0.04780508181906725, 0.0008948954770249615
+    degenerate = torch.tensor([
+        [a, 0.0, 0.0, 0.0, b, c],
+        [0.0, a, 0.0, -b, 0.0, -d],
+        [0.0, 0.0, a, -c, d, 0.0],
+        [0.0, -b, -c, 0.7776242451700193, -0.0004547988737011973, 0.0025325099449255905],
+        [b, 0.0, d, -0.0004547988737011973, 0.7533375222315151, 0.13528601745451935],
+        [c, -d, 0.0, 0.0025325099449255905, 0.13528601745451935, 0.024303750310471522],
+    ], dtype=torch.float64)
+    g_d = torch.tensor([-0.0015310846490743078, -0.0026073834961315803, 0.001876649021628366,
+                        0.006425026073361938, -0.00431504013482032, -0.0007533138192364707], dtype=torch.float64)
+    Hd, gd = torch.cat([H, degenerate[None]]), torch.cat([g, g_d[None]])
+    host = solve_pair_steps(Hd, gd, host=True)
+    plain = solve_pair_steps(Hd, gd)
+    assert host.solved.tolist() == plain.solved.tolist()
+    torch.testing.assert_close(host.delta, plain.delta, rtol=0, atol=0)

@@ -68,14 +68,16 @@ def solve_pair_steps(H: Tensor, g: Tensor, host: bool = False) -> PairStep:
 
 def _solve_numpy(H: Tensor, g: Tensor) -> PairStep | None:
     """The steps in NumPy on the host (a tenth of torch's fixed cost for a few 6x6 systems), or
-    None when some ``H`` is not positive definite (NumPy's Cholesky then fails for the whole
-    batch; torch's path tells which pairs)."""
+    None when some ``H`` is not finite or not positive definite, or its solve fails (NumPy then
+    fails for the whole batch; torch's path tells which pairs)."""
     Hn, gn = H.numpy(), g.numpy()
+    if not (np.isfinite(Hn).all() and np.isfinite(gn).all()):
+        return None  # NumPy's Cholesky does not reject NaN; torch's path marks those pairs
     try:
         np.linalg.cholesky(Hn)
+        delta = -np.linalg.solve(Hn, gn[..., None])[..., 0]
     except np.linalg.LinAlgError:
         return None
-    delta = -np.linalg.solve(Hn, gn[..., None])[..., 0]
     solved = np.isfinite(delta).all(-1)
     delta = np.where(solved[:, None], delta, 0.0)
     return PairStep(torch.from_numpy(delta), torch.from_numpy(solved))
