@@ -237,7 +237,8 @@ def _energy(x_hat: Tensor, width: int, weighted: bool = True) -> Tensor:
     H = x_hat.shape[-2]
     p = _abs2(x_hat)
     if weighted:
-        p = p * _half_weights(width, p)
+        w = _half_weights(width, p)
+        p = p.mul_(w) if not (torch.is_grad_enabled() and p.requires_grad) else p * w
     return p.sum(dim=(-3, -2, -1)) / (H * width)
 
 
@@ -388,8 +389,14 @@ def _kernel_map(x_hat: Tensor, z_hat: Tensor, ex: Tensor, ez: Tensor, sigma: Ten
     """(B, H, W) Gaussian kernel map κ_z(x) from spectra and energies (Eq. (16))."""
     C = x_hat.shape[1]
     cross = torch.fft.irfft2((x_hat * z_hat.conj()).sum(dim=1), s=(H, W))  # (B, H, W)
-    d2 = (ex + ez)[:, None, None] - 2.0 * cross
-    return torch.exp(-d2.clamp_min(0.0) / (sigma.square() * (C * H * W)))
+    scale = sigma.square() * (C * H * W)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (cross, ex, ez, scale)):
+        d2 = (ex + ez)[:, None, None] - 2.0 * cross
+        return torch.exp(-d2.clamp_min(0.0) / scale)
+    # The same operations in place on the fresh ``cross`` (a - 2c is -2c + a exactly, and
+    # -(d / s) is (-d) / s): the values above without four full-size temporaries.
+    d2 = cross.mul_(-2.0).add_((ex + ez)[:, None, None]).clamp_min_(0.0)
+    return d2.neg_().div_(scale).exp_()
 
 
 def kernel_correlation(x: Tensor, z: Tensor, sigma) -> Tensor:
