@@ -361,9 +361,12 @@ def standardize_masked(x: Tensor, m: Tensor) -> Tensor:
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
     mean = (x * m).sum(dim=(-2, -1), keepdim=True) / n
     centred = x - mean
-    var = (centred.square() * m).sum(dim=(-2, -1), keepdim=True) / n
+    grad = torch.is_grad_enabled() and (x.requires_grad or m.requires_grad)
+    # Without gradients the products are taken in place on their fresh operands: same values.
+    sq = centred.square() if grad else centred.square().mul_(m)
+    var = (sq * m if grad else sq).sum(dim=(-2, -1), keepdim=True) / n
     inv = torch.where(var > 0, torch.rsqrt(var.clamp_min(torch.finfo(x.dtype).tiny)), torch.zeros_like(var))
-    return centred * inv * m
+    return centred * inv * m if grad else centred.mul_(inv).mul_(m)
 
 
 def spectral_energy(x_hat: Tensor, width: int) -> Tensor:
