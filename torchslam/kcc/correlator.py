@@ -247,6 +247,8 @@ def box_sum(x: Tensor, k: int) -> Tensor:
     H, W = x.shape[-2:]
     if k == 1:
         return x.clone()
+    if k == 3 and not (torch.is_grad_enabled() and x.requires_grad):
+        return _box_sum3(x)
     h = k // 2
     xp = F.pad(x, (h, h, 0, 0))
     rows = xp[..., 0:W] + xp[..., 1 : 1 + W]
@@ -256,6 +258,26 @@ def box_sum(x: Tensor, k: int) -> Tensor:
     out = rp[..., 0:H, :] + rp[..., 1 : 1 + H, :]
     for i in range(2, k):
         out += rp[..., i : i + H, :]
+    return out
+
+
+def _box_sum3(x: Tensor) -> Tensor:
+    """``box_sum(x, 3)`` without the padded copies: the same sums in the same order.
+
+    Each axis sums ``(a_{j-1} + a_j) + a_{j+1}`` with the missing neighbours at the border as
+    ``+0``, exactly as the padded form adds them (``0 + a`` is ``a + 0``), so the values and
+    even the signs of zeros agree.
+    """
+    rows = torch.empty_like(x)
+    torch.add(x[..., :-1], x[..., 1:], out=rows[..., 1:])
+    torch.add(x[..., :1], 0.0, out=rows[..., :1])
+    rows[..., :-1] += x[..., 1:]
+    rows[..., -1:] += 0.0
+    out = torch.empty_like(x)
+    torch.add(rows[..., :-1, :], rows[..., 1:, :], out=out[..., 1:, :])
+    torch.add(rows[..., :1, :], 0.0, out=out[..., :1, :])
+    out[..., :-1, :] += rows[..., 1:, :]
+    out[..., -1:, :] += 0.0
     return out
 
 
