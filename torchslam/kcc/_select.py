@@ -47,9 +47,16 @@ def where(mask: Tensor, a: Tensor, b: Tensor | float) -> Tensor:
         or (torch.is_grad_enabled() and (a.requires_grad or (not scalar and b.requires_grad)))
     ):
         return torch.where(mask, a, b)
-    ones = mask.to(bits).neg_()  # all bits set where True, none where False
+    # An integer product with the mask (promoted to 0 or 1 inside the kernel) keeps a bit pattern
+    # or clears it, without first converting the mask to a full-width all-ones pattern.
     a_bits = a.view(bits)
     if scalar and b == 0 and math.copysign(1.0, b) > 0:
-        return (a_bits & ones).view(a.dtype)  # +0 has no bits set
+        return (a_bits * mask).view(a.dtype)  # +0 has no bits set
     b_bits = (a.new_full((), b) if scalar else b).view(bits)
-    return (b_bits ^ ((a_bits ^ b_bits) & ones)).view(a.dtype)
+    diff = a_bits ^ b_bits  # a fresh tensor: the rest in place where the mask's shape fits in it
+    if torch.broadcast_shapes(diff.shape, mask.shape) == diff.shape:
+        diff.mul_(mask)
+    else:
+        diff = diff * mask
+    diff ^= b_bits
+    return diff.view(a.dtype)

@@ -237,7 +237,8 @@ def _energy(x_hat: Tensor, width: int, weighted: bool = True) -> Tensor:
     H = x_hat.shape[-2]
     p = _abs2(x_hat)
     if weighted:
-        p = p * _half_weights(width, p)
+        w = _half_weights(width, p)
+        p = p.mul_(w) if not (torch.is_grad_enabled() and p.requires_grad) else p * w
     return p.sum(dim=(-3, -2, -1)) / (H * width)
 
 
@@ -246,6 +247,8 @@ def box_sum(x: Tensor, k: int) -> Tensor:
     H, W = x.shape[-2:]
     if k == 1:
         return x.clone()
+    if k == 3 and not (torch.is_grad_enabled() and x.requires_grad):
+        return _box_sum3(x)
     h = k // 2
     xp = F.pad(x, (h, h, 0, 0))
     rows = xp[..., 0:W] + xp[..., 1 : 1 + W]
@@ -255,6 +258,26 @@ def box_sum(x: Tensor, k: int) -> Tensor:
     out = rp[..., 0:H, :] + rp[..., 1 : 1 + H, :]
     for i in range(2, k):
         out += rp[..., i : i + H, :]
+    return out
+
+
+def _box_sum3(x: Tensor) -> Tensor:
+    """``box_sum(x, 3)`` without the padded copies: the same sums in the same order.
+
+    Each axis sums ``(a_{j-1} + a_j) + a_{j+1}`` with the missing neighbours at the border as
+    ``+0``, exactly as the padded form adds them (``0 + a`` is ``a + 0``), so the values and
+    even the signs of zeros agree.
+    """
+    rows = torch.empty_like(x)
+    torch.add(x[..., :-1], x[..., 1:], out=rows[..., 1:])
+    torch.add(x[..., :1], 0.0, out=rows[..., :1])
+    rows[..., :-1] += x[..., 1:]
+    rows[..., -1:] += 0.0
+    out = torch.empty_like(x)
+    torch.add(rows[..., :-1, :], rows[..., 1:, :], out=out[..., 1:, :])
+    torch.add(rows[..., :1, :], 0.0, out=out[..., :1, :])
+    out[..., :-1, :] += rows[..., 1:, :]
+    out[..., -1:, :] += 0.0
     return out
 
 
@@ -360,9 +383,12 @@ def standardize_masked(x: Tensor, m: Tensor) -> Tensor:
     n = m.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
     mean = (x * m).sum(dim=(-2, -1), keepdim=True) / n
     centred = x - mean
-    var = (centred.square() * m).sum(dim=(-2, -1), keepdim=True) / n
+    grad = torch.is_grad_enabled() and (x.requires_grad or m.requires_grad)
+    # Without gradients the products are taken in place on their fresh operands: same values.
+    sq = centred.square() if grad else centred.square().mul_(m)
+    var = (sq * m if grad else sq).sum(dim=(-2, -1), keepdim=True) / n
     inv = torch.where(var > 0, torch.rsqrt(var.clamp_min(torch.finfo(x.dtype).tiny)), torch.zeros_like(var))
-    return centred * inv * m
+    return centred * inv * m if grad else centred.mul_(inv).mul_(m)
 
 
 def spectral_energy(x_hat: Tensor, width: int) -> Tensor:
@@ -388,8 +414,14 @@ def _kernel_map(x_hat: Tensor, z_hat: Tensor, ex: Tensor, ez: Tensor, sigma: Ten
     """(B, H, W) Gaussian kernel map κ_z(x) from spectra and energies (Eq. (16))."""
     C = x_hat.shape[1]
     cross = torch.fft.irfft2((x_hat * z_hat.conj()).sum(dim=1), s=(H, W))  # (B, H, W)
-    d2 = (ex + ez)[:, None, None] - 2.0 * cross
-    return torch.exp(-d2.clamp_min(0.0) / (sigma.square() * (C * H * W)))
+    scale = sigma.square() * (C * H * W)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (cross, ex, ez, scale)):
+        d2 = (ex + ez)[:, None, None] - 2.0 * cross
+        return torch.exp(-d2.clamp_min(0.0) / scale)
+    # The same operations in place on the fresh ``cross`` (a - 2c is -2c + a exactly, and
+    # -(d / s) is (-d) / s): the values above without four full-size temporaries.
+    d2 = cross.mul_(-2.0).add_((ex + ez)[:, None, None]).clamp_min_(0.0)
+    return d2.neg_().div_(scale).exp_()
 
 
 def kernel_correlation(x: Tensor, z: Tensor, sigma) -> Tensor:

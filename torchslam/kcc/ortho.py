@@ -78,8 +78,15 @@ def grey_from_rgb(rgb: Tensor) -> Tensor:
     """
     check_shape(rgb, "B 3 H W", "rgb")
     check_float(rgb, "rgb")
-    w = rgb.new_tensor(_LUMA).view(1, 3, 1, 1)
-    return (rgb * w).sum(dim=1).flatten(1)
+    w = rgb.new_tensor(_LUMA)
+    if torch.is_grad_enabled() and rgb.requires_grad:
+        return (rgb * w.view(1, 3, 1, 1)).sum(dim=1).flatten(1)
+    # The channel sum in its order, r w_r + g w_g then + b w_b, accumulated in one plane: the
+    # values of ``(rgb * w).sum(dim=1)`` without its (B, 3, H, W) product.
+    grey = torch.mul(rgb[:, 0], w[0])
+    grey.add_(rgb[:, 1] * w[1])
+    grey.add_(rgb[:, 2] * w[2])
+    return grey.flatten(1)
 
 
 def rgbd_to_points(

@@ -157,7 +157,10 @@ def peak_to_sidelobe(g: Tensor, index: Tensor | None = None, window: int = 11, e
     n = side.sum(dim=(1, 2))
     peak = g.reshape(B, H * W).gather(1, (row * W + col)[:, None])[:, 0]
     mu = (g * side).sum(dim=(1, 2)) / n
-    var = ((g - mu[:, None, None]).square() * side).sum(dim=(1, 2)) / n
+    if torch.is_grad_enabled() and g.requires_grad:
+        var = ((g - mu[:, None, None]).square() * side).sum(dim=(1, 2)) / n
+    else:  # the same products in place on the fresh deviations
+        var = (g - mu[:, None, None]).square_().mul_(side).sum(dim=(1, 2)) / n
     return (peak - mu) / var.clamp_min(eps * eps).sqrt()
 
 
