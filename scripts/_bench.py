@@ -122,3 +122,17 @@ def write_json(path: Path | None, data) -> None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def tree_ate_cm(tree: dict, out, seq) -> float:
+    """ATE RMSE in cm of a run's output with ``tree``'s evaluation, against the raw ground truth where there is one."""
+    ref = seq.groundtruth_raw if getattr(seq, "groundtruth_raw", None) is not None else seq.groundtruth
+    return 100 * tree["torchslam.eval"].ate(tree["torchslam.data"].Trajectory(out.timestamps, out.T_wc), ref).stats["rmse"]
+
+
+def print_stage_ratios(before: dict, after: dict, width: int = 20) -> None:
+    """Print each stage's ms per frame, before -> after, with the ratio."""
+    for k in sorted(set(before) | set(after)):
+        b, a = before.get(k, 0.0), after.get(k, 0.0)
+        print(f"    {k:{width}s} {b:7.2f} -> {a:7.2f} ms/frame ({b / a if a else float('nan'):.2f}x)")
+

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average, load_tree, use_tree, write_json
+from _bench import data_root, load_average, load_tree, print_stage_ratios, tree_ate_cm, use_tree, write_json
 
 NISLAM_MODULES = ("torchslam.systems.nislam", "torchslam.config", "torchslam.data.tum", "torchslam.data.synthetic",
                   "torchslam.data", "torchslam.eval")
@@ -86,10 +86,9 @@ def main() -> None:
         for label, t in trees.items():
             use_tree(t)
             out, seq = outs[label], seqs[label]
-            ref = seq.groundtruth_raw if getattr(seq, "groundtruth_raw", None) is not None else seq.groundtruth
-            a = t["torchslam.eval"].ate(t["torchslam.data"].Trajectory(out.timestamps, out.T_wc), ref)
+            ate_cm = tree_ate_cm(t, out, seq)
             row[label] = {"track_ms": 1000 * track[label] / n_total, "fps_track": n_total / track[label],
-                          "ate_cm": 100 * a.stats["rmse"], "keyframes": len(out.keyframe_indices),
+                          "ate_cm": ate_cm, "keyframes": len(out.keyframe_indices),
                           "stage_ms": {k: v / n_total for k, v in stage[label].items()}}
         pb, pa = outs["before"].T_wc[:, :3, 3].double(), outs["after"].T_wc[:, :3, 3].double()
         row["max_position_diff_m"] = float((pb - pa).abs().max()) if pb.shape == pa.shape else None
@@ -99,9 +98,7 @@ def main() -> None:
         print(f"  track {b['track_ms']:.1f} -> {a['track_ms']:.1f} ms/frame ({b['track_ms'] / a['track_ms']:.2f}x)  "
               f"ATE {b['ate_cm']:.3f} -> {a['ate_cm']:.3f} cm  kf {b['keyframes']} -> {a['keyframes']}  "
               f"max position diff {row['max_position_diff_m']}")
-        for k in sorted(set(b["stage_ms"]) | set(a["stage_ms"])):
-            bk, ak = b["stage_ms"].get(k, 0), a["stage_ms"].get(k, 0)
-            print(f"    {k:12s} {bk:7.2f} -> {ak:7.2f} ms/frame ({bk / ak if ak else float('nan'):.2f}x)")
+        print_stage_ratios(b["stage_ms"], a["stage_ms"], 12)
     write_json(args.out, rows)
 
 

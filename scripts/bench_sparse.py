@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import data_root, load_average, load_tree, use_tree, write_json
+from _bench import data_root, load_average, load_tree, print_stage_ratios, tree_ate_cm, use_tree, write_json
 
 
 
@@ -71,11 +71,10 @@ def main() -> None:
             use_tree(t)
             out = systems[label].finish()
             seq = seqs[label]
-            ref = seq.groundtruth_raw if getattr(seq, "groundtruth_raw", None) is not None else seq.groundtruth
-            a = t["torchslam.eval"].ate(t["torchslam.data"].Trajectory(out.timestamps, out.T_wc), ref)
+            ate_cm = tree_ate_cm(t, out, seq)
             st = systems[label].stage_ms
             row[label] = {"track_ms": 1000 * track[label] / n, "fps_track": n / track[label],
-                          "ate_cm": 100 * a.stats["rmse"], "keyframes": len(out.keyframe_indices),
+                          "ate_cm": ate_cm, "keyframes": len(out.keyframe_indices),
                           "counts": dict(systems[label].counts),
                           "stage_ms": {k: v / n for k, v in st.items()}}
             extra = getattr(systems[label].frontend, "counts", None)
@@ -87,8 +86,7 @@ def main() -> None:
         print(f"  track {b['track_ms']:.1f} -> {a['track_ms']:.1f} ms/frame ({b['track_ms'] / a['track_ms']:.2f}x)  "
               f"ATE {b['ate_cm']:.2f} -> {a['ate_cm']:.2f} cm  kf {b['keyframes']} -> {a['keyframes']}  "
               f"lost {b['counts'].get('lost_frames')} -> {a['counts'].get('lost_frames')}  {a.get('frontend_counts', '')}")
-        for k in sorted(set(b["stage_ms"]) | set(a["stage_ms"])):
-            print(f"    {k:20s} {b['stage_ms'].get(k, 0):7.2f} -> {a['stage_ms'].get(k, 0):7.2f} ms/frame")
+        print_stage_ratios(b["stage_ms"], a["stage_ms"], 20)
     write_json(args.out, rows)
 
 
