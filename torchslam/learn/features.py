@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_limits
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError
 from ..kcc import (
     FeatureKind,
     KCCConfig,
@@ -55,7 +55,7 @@ from ..kcc import (
 from ..systems.monitor import Monitor
 from ..systems.nislam import NISlamConfig
 from .kcc import TRAJECTORIES, _check_gaps, _pair_indices, ortho_pairs_from_points
-from .train import TrainResult
+from .train import TrainResult, _check_training
 
 __all__ = [
     "FeatureLoss",
@@ -237,14 +237,17 @@ def _correlator(cfg: KCCConfig, net: KCCFeatureNet | None) -> KernelCorrelator:
     return KernelCorrelator(dataclasses.replace(cfg, features=kind), dtype=torch.float64, features=net)
 
 
-def _correlate(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | None, soft: bool):
-    """KCC of the pairs: soft arg-max shift (``soft``) or the run's peak (``cfg.subpixel`` refinement)."""
+def _correlate(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | None, soft: tuple[bool, ...]):
+    """KCC of the pairs, one prediction per entry of ``soft``: the soft arg-max shift (True) or the
+    run's peak (False, ``cfg.subpixel`` refinement). Channels and filters are computed once."""
     corr = _correlator(cfg, net)
     x = corr.channels(pairs.frame)
     filt = corr.fit(corr.channels(pairs.keyframe))
-    if soft:
-        return kcc_predict(x, filt, cfg.sigma, pairs.resolution, psr_window=cfg.psr_window, temperature=cfg.temperature)
-    return corr(x, filt, pairs.resolution)
+    return [
+        kcc_predict(x, filt, cfg.sigma, pairs.resolution, psr_window=cfg.psr_window, temperature=cfg.temperature)
+        if s else corr(x, filt, pairs.resolution)
+        for s in soft
+    ]
 
 
 @dataclass(frozen=True)
@@ -273,9 +276,9 @@ def feature_loss(
     reference_psr: Tensor,
     psr_weight: float = 0.1,
     robust_px: float = 1.0,
-    peak: str = "soft",
+    peak: str = "refined",
 ) -> FeatureLoss:
-    """Soft arg-max shift error plus the PSR-shaped term, through the network and the correlator.
+    """Robust shift error plus the PSR-shaped term, through the network and the correlator.
 
     Args:
         net: the learned channels.
@@ -297,7 +300,7 @@ def feature_loss(
         raise ShapeError(f"reference_psr: expected ({len(pairs)},), got {tuple(reference_psr.shape)}")
     if peak not in ("soft", "refined"):
         raise ConfigError(f"peak: expected 'soft' or 'refined', got {peak!r}")
-    pred = _correlate(pairs, cfg, net, soft=peak == "soft")
+    (pred,) = _correlate(pairs, cfg, net, (peak == "soft",))
     err = (pred.t_xy - pairs.t_xy) / pairs.resolution[:, None]
     c2 = robust_px**2
     shift = (c2 * torch.log1p(err.square().sum(1) / c2)).mean()
@@ -319,8 +322,7 @@ def evaluate_features(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | No
     with torch.no_grad():
         for a in range(0, len(pairs), chunk):
             part = pairs.select(slice(a, a + chunk))
-            hard = _correlate(part, cfg, net, soft=False)
-            soft = _correlate(part, cfg, net, soft=True)
+            hard, soft = _correlate(part, cfg, net, (False, True))
             errs.append(((hard.t_xy - part.t_xy) / part.resolution[:, None]).norm(dim=1))
             soft_errs.append(((soft.t_xy - part.t_xy) / part.resolution[:, None]).norm(dim=1))
             psrs.append(hard.psr)
@@ -337,7 +339,7 @@ def evaluate_features(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | No
 
 def _reference_psr(pairs: OrthoPairs, cfg: KCCConfig, chunk: int = 16) -> Tensor:
     with torch.no_grad():
-        return torch.cat([_correlate(pairs.select(slice(a, a + chunk)), cfg, None, soft=True).psr
+        return torch.cat([_correlate(pairs.select(slice(a, a + chunk)), cfg, None, (True,))[0].psr
                           for a in range(0, len(pairs), chunk)])
 
 
@@ -408,13 +410,9 @@ class FeatureTrainConfig:
     }
 
     def __post_init__(self) -> None:
-        check_limits(self)
+        _check_training(self)
         if self.peak not in ("soft", "refined"):
             raise ConfigError(f"peak: expected 'soft' or 'refined', got {self.peak!r}")
-        if set(self.train_seeds) & set(self.val_seeds):
-            raise ConfigError(f"val_seeds: must not overlap train_seeds, both hold {sorted(set(self.train_seeds) & set(self.val_seeds))}")
-        if not self.train_seeds or not self.val_seeds:
-            raise ConfigError("train_seeds, val_seeds: expected at least one seed each")
 
 
 def train_features(cfg: FeatureTrainConfig | None = None, base: NISlamConfig | None = None,
