@@ -10,6 +10,8 @@ and counts frames that the sequences had to skip.
 from __future__ import annotations
 
 import logging
+import queue
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -24,8 +26,8 @@ from ..errors import ConfigError
 from .memory import check_run_memory
 
 __all__ = [
-    "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "drive", "empty_output", "frame_poses",
-    "resample_poses", "run_sequence", "track_each",
+    "AheadFrames", "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "drive", "empty_output",
+    "frame_poses", "resample_poses", "run_sequence", "track_each",
 ]
 
 logger = logging.getLogger(__name__)
@@ -71,7 +73,11 @@ class SystemOutput:
 class SlamSystem(Protocol):
     """Interface of a SLAM system as the driver and the application's monitoring see it.
 
-    ``start``, ``track`` and ``finish`` drive a run. ``stage_ms``, ``last_frame_index``,
+    ``start``, ``track`` and ``finish`` drive a run. A system whose ``prepares_ahead`` is true
+    also has ``prepare_ahead(frame)``: the per-frame work that depends on the frame alone (and on
+    what ``start`` set up), which ``run_sequence`` runs on a thread of its own a frame or two
+    before ``track`` (:class:`AheadFrames`), so that it overlaps the tracking of the frames before.
+    ``stage_ms``, ``last_frame_index``,
     ``estimate_so_far`` and ``progress_counters`` are read between frames for live monitoring
     (``app.progress``); a class that inherits from ``SlamSystem`` gets the defaults documented
     below and logs only its stage times.
@@ -86,6 +92,7 @@ class SlamSystem(Protocol):
     name: str
     stage_ms: dict[str, float]
     last_frame_index: int | None = None
+    prepares_ahead: bool = False
 
     def start(self, sequence: Sequence) -> None:
         """Prepare for a new sequence (camera, attitude stream, ...)."""
@@ -157,6 +164,9 @@ def run_sequence(
 ) -> RunResult:
     """Drive ``system`` over ``sequence`` and return its output and timings: ``drive`` with B = 1.
 
+    A system that ``prepares_ahead`` has each frame prepared on a thread of its own while it
+    tracks the frames before (``drive``'s ``ahead``).
+
     Ctrl-C (``KeyboardInterrupt``) stops the loop; the system is still asked to ``finish`` so
     the frames processed so far are returned with ``interrupted=True``.
 
@@ -175,7 +185,7 @@ def run_sequence(
     """
     (result,) = drive(
         [system], [sequence], track_each, progress=progress, max_frames=max_frames,
-        on_frame=None if on_frame is None else (lambda i, n: on_frame(n)),
+        on_frame=None if on_frame is None else (lambda i, n: on_frame(n)), ahead=True,
     )
     if isinstance(result, BaseException):
         raise result
@@ -205,6 +215,7 @@ def drive(
     max_frames: int | None = None,
     on_frame: Callable[[int, int], None] | None = None,
     memory_batch: int = 1,
+    ahead: bool = False,
 ) -> list[RunResult | BaseException]:
     """The one driver: run built systems over their sequences, one frame of each per step.
 
@@ -234,6 +245,9 @@ def drive(
         max_frames: stop each sequence after this many frames.
         on_frame: ``on_frame(i, processed)`` after each frame of sequence ``i``, outside the timers.
         memory_batch: sequences whose state the memory check counts at once.
+        ahead: give every system that ``prepares_ahead`` its frames through :class:`AheadFrames`
+            (one thread per sequence, so meant for few sequences: ``run_sequence``). Its seconds
+            count in the sequence's ``compute_s``.
 
     Returns:
         Per sequence, in order, its ``RunResult`` or the exception that stopped it.
@@ -247,6 +261,7 @@ def drive(
     failed: list[BaseException | None] = [None] * n
     outputs: list[SystemOutput | None] = [None] * n
     frames_in: list[Iterator[Frame] | None] = [None] * n
+    aheads: list[AheadFrames | None] = [None] * n
     processed = [0] * n
     compute = [0.0] * n
     interrupted = False
@@ -268,6 +283,8 @@ def drive(
             t0 = time.perf_counter()
             try:
                 frames: Iterable[Frame] = iter(seq)
+                if ahead and getattr(live[i], "prepares_ahead", False):
+                    frames = aheads[i] = AheadFrames(live[i], frames)
                 if progress is not None:
                     frames = progress(frames)
                 frames_in[i] = iter(frames)
@@ -284,6 +301,8 @@ def drive(
                 if max_frames is None or processed[i] < max_frames:
                     try:
                         frame = next(frames_in[i])
+                        if aheads[i] is not None:
+                            compute[i] += aheads[i].take_seconds()
                     except StopIteration:
                         pass
                     except Exception as exc:  # noqa: BLE001 - a sequence that cannot be read stops alone
@@ -315,6 +334,9 @@ def drive(
     for i in range(n):
         if failed[i] is None and outputs[i] is None and live[i] is not None and frames_in[i] is not None:
             finish(i)
+    for a in aheads:
+        if a is not None:
+            a.close()
     wall_s = time.perf_counter() - t_start
 
     results: list[RunResult | BaseException] = []
@@ -326,6 +348,95 @@ def drive(
         output = outputs[i] if outputs[i] is not None else empty_output()
         results.append(RunResult.of(seq, output, processed[i], wall_s, compute[i], interrupted))
     return results
+
+
+class AheadFrames:
+    """Frames of a sequence, each passed through ``system.prepare_ahead`` on a background thread.
+
+    The thread reads the frames (from ``frames``, which may decode ahead itself) and prepares
+    each while the consumer tracks the ones before, at most ``depth`` frames ahead. A frame is
+    handed out only once its preparation has finished, so ``track`` finds it done. What the
+    preparation computes depends on the frame alone, so a run gives the same results with or
+    without this (tested); it only overlaps the work with tracking where a core is free.
+
+    An error while reading a frame is raised by ``next`` in the frame's place, as the plain
+    iterator would raise it. An error inside ``prepare_ahead`` is not raised here: the frame is
+    handed out unprepared and ``track`` prepares it inline, raising it there, in the frame's
+    place. :meth:`close` (also on garbage collection of a finished iteration) stops the thread.
+    """
+
+    def __init__(self, system: SlamSystem, frames: Iterable[Frame], depth: int = 2) -> None:
+        if not (isinstance(depth, int) and depth >= 1):
+            raise ConfigError(f"depth: expected an integer >= 1, got {depth!r}")
+        self.system = system
+        self._source = iter(frames)
+        self._slots = threading.Semaphore(depth)
+        self._results: queue.SimpleQueue = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._seconds = 0.0
+        self._done = False
+
+    def __iter__(self) -> AheadFrames:
+        return self
+
+    def __next__(self) -> Frame:
+        if self._done:
+            raise StopIteration
+        if self._thread is None:  # started on the first frame, after the system's start
+            self._thread = threading.Thread(target=self._work, name="torchslam-ahead", daemon=True)
+            self._thread.start()
+        kind, value, seconds = self._results.get()
+        self._slots.release()
+        if kind == "frame":
+            self._seconds += seconds
+            return value
+        self._done = True
+        self._join()
+        if kind == "error":
+            raise value
+        raise StopIteration
+
+    def take_seconds(self) -> float:
+        """Seconds spent in ``prepare_ahead`` for the frames handed out since the last call."""
+        s, self._seconds = self._seconds, 0.0
+        return s
+
+    def close(self) -> None:
+        """Stop the thread (frames it prepared and nobody took are dropped)."""
+        self._done = True
+        self._stop.set()
+        self._join()
+
+    def _join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        close = getattr(self._source, "close", None)
+        if close is not None:  # a generator's own prefetch thread stops with it
+            close()
+
+    def _work(self) -> None:
+        while True:
+            while not self._slots.acquire(timeout=0.05):
+                if self._stop.is_set():
+                    return
+            if self._stop.is_set():
+                return
+            try:
+                frame = next(self._source)
+            except StopIteration:
+                self._results.put(("end", None, 0.0))
+                return
+            except BaseException as exc:  # handed to the consumer, which raises it
+                self._results.put(("error", exc, 0.0))
+                return
+            t0 = time.perf_counter()
+            try:
+                self.system.prepare_ahead(frame)
+            except Exception:  # noqa: BLE001 - track prepares the frame inline and raises it there
+                logger.debug("prepare_ahead failed for frame %s; tracking prepares it", frame.index, exc_info=True)
+            self._results.put(("frame", frame, time.perf_counter() - t0))
 
 
 def add_stage_ms(stage_ms: dict[str, float], stage: str, t0: float) -> float:

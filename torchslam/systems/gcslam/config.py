@@ -54,6 +54,10 @@ class GCSlamConfig:
         final_iterations: iterations of one last FastGO run over all keyframes at the end of
             the sequence (0: keep the per-keyframe result).
         threaded: run optimisation in a background thread (False: inline, for tests).
+        prepare_ahead: in ``run_sequence``, each frame's ORB features (sparse) or dense pyramid
+            (dense) are computed on a thread of their own while the frames before it are tracked
+            (``systems.base.AheadFrames``): the same results, overlapped with tracking where a
+            core is free. False: prepared inline by ``track``.
         relocalize_keyframes: recent keyframes tried when a frame cannot be registered.
         max_lost: lost frames in a row before a new, unlinked keyframe is started.
         min_valid_depth: frames with fewer valid depth pixels are not tracked.
@@ -88,6 +92,7 @@ class GCSlamConfig:
     loop_slack_m: float = 0.003
     final_iterations: int = 10
     threaded: bool = True
+    prepare_ahead: bool = True
     relocalize_keyframes: int = 5
     max_lost: int = 10
     min_valid_depth: int = 1000

@@ -96,6 +96,18 @@ class _TrackKeyframe:
     map_colors: Tensor  # (P, 3) float32
 
 
+@dataclass
+class _Ahead:
+    """A frame as :meth:`GCSlam.prepare_ahead` left it for ``track``."""
+
+    frame: Frame
+    rgb: Tensor
+    depth: Tensor
+    enough: bool  # at least ``min_valid_depth`` valid depth pixels
+    view: PreparedFrame | None  # None where not enough
+    stage_ms: dict[str, float]
+
+
 class GCSlam:
     """GC-SLAM on one sequence; see the module docstring."""
 
@@ -146,6 +158,32 @@ class GCSlam:
         self._need_unlinked = False
         self._inline_s = 0.0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
+        # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked, by index.
+        self._ahead: dict[int, _Ahead] = {}
+
+    @property
+    def prepares_ahead(self) -> bool:
+        """Whether ``run_sequence`` prepares frames ahead on another thread (``cfg.prepare_ahead``)."""
+        return self.cfg.prepare_ahead
+
+    def prepare_ahead(self, frame: Frame) -> None:
+        """What ``track`` does first, for a frame still to come: the images on the device, the
+        valid-depth count and the front-end's preparation (ORB features or the dense pyramid).
+
+        Reads only what ``start`` set up, so it may run on another thread while ``track`` runs;
+        ``track`` of the frame picks the result up (and its stage times).
+        """
+        stage_ms: dict[str, float] = {}
+        clock = _Stopwatch(stage_ms)
+        rgb, depth, enough = self._images(frame)
+        view = self.frontend.prepare(rgb, depth, keyframe=False, lap=clock.lap) if enough else None
+        self._ahead[frame.index] = _Ahead(frame, rgb, depth, enough, view, stage_ms)
+
+    def _images(self, frame: Frame) -> tuple[Tensor, Tensor, bool]:
+        # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
+        rgb = frame.rgb.to(self.device, non_blocking=True)
+        depth = frame.depth.to(self.device, non_blocking=True)
+        return rgb, depth, int((depth > 0).sum()) >= self.cfg.min_valid_depth
 
     def _toc(self, stage: str, t0: float) -> float:
         return add_stage_ms(self.stage_ms, stage, t0)
@@ -156,15 +194,24 @@ class GCSlam:
         cfg = self.cfg
         clock = _Stopwatch(self.stage_ms)
         self.last_frame_index = frame.index
-        # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
-        rgb = frame.rgb.to(self.device, non_blocking=True)
-        depth = frame.depth.to(self.device, non_blocking=True)
-        if int((depth > 0).sum()) < cfg.min_valid_depth:
+        ahead = self._ahead.pop(frame.index, None)
+        if ahead is not None and ahead.frame is frame:
+            rgb, depth, enough, view = ahead.rgb, ahead.depth, ahead.enough, ahead.view
+            for stage, ms in ahead.stage_ms.items():
+                self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + ms
+        else:
+            rgb, depth, enough = self._images(frame)
+            view = None
+        if not enough:
             self.counts["no_depth"] += 1
             self._record_lost(frame)
             return
         unlinked = not self.keyframes or self._need_unlinked
-        view = self.frontend.prepare(rgb, depth, keyframe=unlinked, lap=clock.lap)
+        if view is None:
+            view = self.frontend.prepare(rgb, depth, keyframe=unlinked, lap=clock.lap)
+        elif unlinked and view.features is None:
+            self.frontend.features(view)
+            clock.lap("orb_extraction")
         if unlinked:
             self._velocity, self._last_time = None, frame.timestamp
             self._new_keyframe(frame, view, reference=None, T_ref=None, stats=None)
@@ -330,6 +377,7 @@ class GCSlam:
         if self._worker is None:
             raise TorchSlamError("GCSlam.finish() called before start()")
         t0 = time.perf_counter()
+        self._ahead.clear()  # frames prepared and never tracked (a stop before the end)
         self._worker.join()
         opt = self.optimizer
         opt.finish()

@@ -157,6 +157,10 @@ class NISlamConfig:
             e.g. the TUM freiburg1/2 presets), back-project each pixel along its undistorted ray
             and sample the colour image through the forward distortion; off treats the images
             as ideal pinhole images. Cameras without distortion are unaffected.
+        prepare_ahead: in ``run_sequence``, each frame's attitude look-up and back-projection
+            (the ``backproject`` stage) run on a thread of their own while the frames before it
+            are tracked (``systems.base.AheadFrames``): the same results, overlapped with
+            tracking where a core is free. False: done inline by ``track``.
         kcc: correlator, keyframe and fusion settings. The paper's values except
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
             optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, which
@@ -184,6 +188,7 @@ class NISlamConfig:
     lost_uses_prior: bool = True
     grey_at_depth_time: bool = True
     undistort: bool = True
+    prepare_ahead: bool = True
     kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01

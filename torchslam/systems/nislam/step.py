@@ -79,6 +79,8 @@ class FrameInput:
         depth: (1, 1, H, W) depth, metres.
         camera: the sequence's camera rig.
         resample_grey: sample the grey values where the points appear at the colour instant.
+        cloud: the frame's back-projection where it was computed ahead (``NISlam.prepare_ahead``,
+            the same ``backproject`` alone), else None: the step back-projects it.
     """
 
     frame: Frame
@@ -88,6 +90,7 @@ class FrameInput:
     depth: Tensor
     camera: CameraRig
     resample_grey: bool
+    cloud: "Cloud | None" = None
 
     @property
     def batch_key(self) -> tuple:
@@ -330,8 +333,8 @@ class _Step:
         for i in chunk:
             inputs[i] = self.own(i, "backproject", systems[i].prepare, frames[i])
         live = [i for i in chunk if inputs[i] is not None]
-        clouds: dict[int, Cloud] = {}
-        for group in groups(live, lambda i: inputs[i].batch_key):
+        clouds: dict[int, Cloud] = {i: inputs[i].cloud for i in live if inputs[i].cloud is not None}
+        for group in groups([i for i in live if i not in clouds], lambda i: inputs[i].batch_key):
             self.batched(group, "backproject", lambda items: backproject([inputs[i] for i in items]), clouds)
         requests = {}
         for i in chunk:

@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -82,7 +82,7 @@ from ..registry import LockstepSpec, SystemSpec
 from .attitude import attitude_stream
 from .config import NISlamConfig
 from .policy import Action, KeyframePolicy
-from .step import CameraRig, Cloud, FrameInput, MatchRequest, track_frames
+from .step import CameraRig, Cloud, FrameInput, MatchRequest, backproject, track_frames
 
 __all__ = ["CPU_BATCH_PIXELS", "SPEC", "NISlam"]
 
@@ -186,6 +186,9 @@ class NISlam:
         self._history_start = 0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         self._response_keyframe: int | None = None  # keyframe whose first match's response is to be logged
+        # Frames done by ``prepare_ahead`` (another thread) and not yet tracked, by index:
+        # (frame, its input with the cloud or None at an attitude gap, milliseconds).
+        self._ahead: dict[int, tuple[Frame, FrameInput | None, float]] = {}
 
     def _tic(self) -> float:
         return time.perf_counter()
@@ -206,19 +209,49 @@ class NISlam:
 
     # The phases of one frame, in the order ``step.track_frames`` calls them (see ``step``).
     def prepare(self, frame: Frame) -> FrameInput | None:
-        """Phase 1: the attitude at the depth and colour instants and the images on the device.
+        """Phase 1: the attitude at the depth and colour instants and the images on the device
+        (with the back-projection, where ``prepare_ahead`` did both for this frame).
 
         Returns:
             The frame's input, or None when the attitude stream has a gap at the frame (counted,
             not tracked).
         """
-        cfg = self.cfg
         self.last_frame_index = frame.index
+        ahead = self._ahead.pop(frame.index, None)
+        if ahead is not None and ahead[0] is frame:
+            _, input, ms = ahead
+            self.stage_ms["backproject"] = self.stage_ms.get("backproject", 0.0) + ms
+        else:
+            input = self._frame_input(frame)
+        if input is None:
+            self.untracked["attitude_gap"] += 1
+        return input
+
+    @property
+    def prepares_ahead(self) -> bool:
+        """Whether ``run_sequence`` prepares frames ahead on another thread (``cfg.prepare_ahead``)."""
+        return self.cfg.prepare_ahead
+
+    def prepare_ahead(self, frame: Frame) -> None:
+        """Phase 1 and the back-projection of a frame still to come, for ``prepare`` to pick up.
+
+        Reads only what ``start`` set up (camera, attitude stream), so it may run on another
+        thread while the frames before are tracked; the cloud is ``backproject`` of the frame
+        alone, as the step computes it.
+        """
+        t0 = time.perf_counter()
+        input = self._frame_input(frame)
+        if input is not None:
+            input = replace(input, cloud=backproject([input])[0])
+        self._ahead[frame.index] = (frame, input, 1000.0 * (time.perf_counter() - t0))
+
+    def _frame_input(self, frame: Frame) -> FrameInput | None:
+        """The attitude at the frame's two instants and its images on the device; None at a gap."""
+        cfg = self.cfg
         # Sampled at the depth image's instant (the geometry) and at the colour image's.
         times = torch.tensor([frame.geometry_time, frame.timestamp], dtype=torch.float64)
         R_att, ok = self.attitude.at(times + cfg.attitude_time_offset, cfg.attitude_max_gap)
         if not bool(ok[0]):
-            self.untracked["attitude_gap"] += 1
             return None
         # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
         rgb = frame.rgb.to(self.device, non_blocking=True)[None]
@@ -605,6 +638,7 @@ class NISlam:
         ``attitude_max_gap``, are kept as tracked. Keyframes are reported at their depth
         instants, as tracked.
         """
+        self._ahead.clear()  # frames prepared and never tracked (a stop before the end)
         log = self.frames
         if not len(log):
             return FrameLog.empty(dict(self.stage_ms), self._metrics())
