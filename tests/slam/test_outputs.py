@@ -151,3 +151,41 @@ def test_map_is_in_colour_and_in_the_trajectory_world_frame(tmp_path, system):
     # Colour, not grey: the synthetic scene's texture is coloured.
     chroma = (map_rgb.max(dim=1).values - map_rgb.min(dim=1).values).float()
     assert float((chroma > 10).float().mean()) > 0.5
+
+
+def _fill_colour_reference(colour, has, want, rounds=16):
+    """The map's colour filling as plain float64 torch rounds of padded 3x3 sums."""
+    import torch.nn.functional as F
+
+    colour, has = colour.clone(), has.clone()
+    for _ in range(rounds):
+        todo = want & ~has
+        if not bool(todo.any()):
+            break
+        w = has.double()[None]
+        sums = F.conv2d(F.pad(torch.cat([colour * w, w])[:, None], (1, 1, 1, 1)), torch.ones(1, 1, 3, 3, dtype=torch.float64))[:, 0]
+        total, count = sums[:3], sums[3]
+        new = todo & (count > 0)
+        if not bool(new.any()):
+            break
+        colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
+        has = has | new
+    return colour, has
+
+
+@pytest.mark.parametrize("rounds", [1, 3, 16])
+def test_map_colour_filling_equals_the_round_by_round_reference(rounds):
+    from torchslam.systems.nislam.system import _fill_colour
+
+    g = torch.Generator().manual_seed(3)
+    H, W = 37, 53
+    colour = torch.rand(3, H, W, generator=g, dtype=torch.float64)
+    has = torch.rand(H, W, generator=g) < 0.15
+    has[:, :10] = False  # a band far from any colour: filled only over several rounds
+    want = torch.rand(H, W, generator=g) < 0.8
+    got_c, got_h = _fill_colour(colour, has, want, rounds)
+    ref_c, ref_h = _fill_colour_reference(colour, has, want, rounds)
+    assert torch.equal(got_h, ref_h) and bool((got_h & ~has).any())
+    torch.testing.assert_close(got_c[:, got_h], ref_c[:, ref_h], rtol=1e-12, atol=1e-12)
+    # Pixels that had a colour keep it exactly; the input is not modified.
+    assert torch.equal(got_c[:, has], colour[:, has])

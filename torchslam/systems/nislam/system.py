@@ -49,6 +49,8 @@ import time
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -57,7 +59,6 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...features import ORBConfig, extract_orb
 from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
-from ...kcc.correlator import box_sum
 from ...kcc import (
     KCCFilter,
     KeyframeMap,
@@ -696,6 +697,8 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
 
     The orthographic map is finer than a small image's points (and fusion fills more pixels), so
     each round gives every wanted pixel without a colour the mean of its coloured 3x3 neighbours.
+    It runs on the host (the keyframe colours are kept there), each round's 3x3 sums as one
+    OpenCV box filter over the colours and their count (zero outside the image).
 
     Args:
         colour: (3, H, W) float64 colours in [0, 1], valid where ``has``.
@@ -704,23 +707,27 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
         rounds: most rounds (pixels farther than this from any colour keep none).
 
     Returns:
-        (colour (3, H, W), has (H, W)) after filling.
+        (colour (3, H, W), has (H, W)) after filling, on the CPU.
     """
-    colour, has = colour.clone(), has.clone()
+    c = np.ascontiguousarray(colour.detach().cpu().to(torch.float64).permute(1, 2, 0).numpy())  # (H, W, 3), a copy
+    got = has.cpu().numpy().copy()
+    wanted = want.cpu().numpy()
+    stack = np.empty(c.shape[:2] + (4,), dtype=np.float64)
     for _ in range(rounds):
-        todo = want & ~has
-        if not bool(todo.any()):
+        todo = wanted & ~got
+        if not todo.any():
             break
-        w = has.to(colour.dtype)[None]
+        np.multiply(c, got[..., None], out=stack[..., :3])
+        stack[..., 3] = got
         # 3x3 sums of the coloured pixels' colours and of their count (zero outside).
-        sums = box_sum(torch.cat([colour * w, w])[None], 3)[0]  # (4, H, W)
-        total, count = sums[:3], sums[3]
+        sums = cv2.boxFilter(stack, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        count = sums[..., 3]
         new = todo & (count > 0)
-        if not bool(new.any()):
+        if not new.any():
             break  # nothing reachable is left: further rounds would not change anything
-        colour = torch.where(new[None], total / count.clamp_min(1e-12), colour)
-        has = has | new
-    return colour, has
+        c[new] = sums[..., :3][new] / count[new][:, None]
+        got |= new
+    return torch.from_numpy(c).permute(2, 0, 1), torch.from_numpy(got)
 
 
 def _memory(cfg: NISlamConfig, camera, batch: int) -> dict[str, tuple[int, str]]:
