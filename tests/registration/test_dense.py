@@ -456,6 +456,30 @@ def test_host_update_matches_the_device_path():
     torch.testing.assert_close(out[0][1], dev[0][1], rtol=0, atol=1e-12)
 
 
+
+def test_host_update_of_one_pair_equals_the_batched_one():
+    """Tracking's single pair takes a scalar path (Cholesky as the definiteness test, the exp
+    in scalars): the same poses and flags as the batched NumPy update, degenerate pairs too."""
+    g = torch.Generator().manual_seed(4)
+    J = torch.randn(5, 6, 40, generator=g, dtype=F64)
+    H = J @ J.transpose(1, 2)
+    H[2] = -torch.eye(6, dtype=F64)  # not positive definite
+    H[3, 1, 1] = float("inf")
+    H[4] = torch.zeros(6, 6, dtype=F64)  # singular
+    grad = torch.randn(5, 6, generator=g, dtype=F64)
+    grad[1] *= 30  # the generic branch of the closed form
+    grad[0] *= 1e-7  # the small-angle series, and a step below tol
+    T = se3_exp(0.2 * torch.randn(5, 6, generator=g, dtype=F64))
+    for active in (True, False):
+        act = torch.full((5,), active)
+        batched = dense_module._update_numpy(H, grad, T, act, 1e-3)
+        for b in range(5):
+            one = dense_module._update_numpy(H[b : b + 1], grad[b : b + 1], T[b : b + 1], act[b : b + 1], 1e-3)
+            torch.testing.assert_close(one[0], batched[0][b : b + 1], rtol=0, atol=1e-15)
+            assert one[1].tolist() == batched[1][b : b + 1].tolist(), b
+            assert one[2].tolist() == batched[2][b : b + 1].tolist(), b
+    assert batched[1].tolist() == [False] * 5 and dense_module._update_numpy(H, grad, T, torch.ones(5, dtype=torch.bool), 1e-3)[1].tolist() == [True, True, False, False, False]
+
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_pyrdown_matches_kornia(dtype):
     x = torch.rand(2, 3, 24, 34, generator=torch.Generator().manual_seed(1), dtype=dtype)

@@ -73,6 +73,7 @@ from __future__ import annotations
 import enum
 import functools
 import logging
+import math
 from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
@@ -984,6 +985,8 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
     finite and positive definite (its least eigenvalue) takes no step, as in
     :func:`~torchslam.optim.solve_pair_steps`."""
     Hn, gn, Tn = H.numpy(), g.numpy(), T.numpy()
+    if Hn.shape[0] == 1:
+        return _update_one(Hn[0], gn[0], Tn[0], bool(active[0]), tol)
     eye = np.eye(6)
     ok = np.isfinite(Hn).all((1, 2))
     Hn = np.where(ok[:, None, None], Hn, eye)
@@ -997,6 +1000,45 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
     T_new = np.where(step[:, None, None], E @ Tn, Tn)
     small = np.sqrt((delta * delta).sum(-1)) < tol
     return torch.from_numpy(T_new), torch.from_numpy(step), torch.from_numpy(small)
+
+
+def _update_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_update_numpy` for one pair (tracking), without its batch bookkeeping: ``H`` is
+    positive definite when its Cholesky factorisation exists."""
+    delta = None
+    if np.isfinite(H).all():
+        try:
+            np.linalg.cholesky(H)
+            delta = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            delta = None
+    solved = delta is not None and bool(np.isfinite(delta).all())
+    if not solved:
+        delta = np.zeros(6)
+    step = active and solved
+    T_new = _se3_exp_one(delta) @ T if step else T
+    small = math.sqrt(float(delta @ delta)) < tol
+    return torch.from_numpy(T_new[None]), torch.tensor([step]), torch.tensor([small])
+
+
+def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
+    """(4, 4) ``exp`` of one float64 twist ``(rho, phi)``: :func:`_se3_exp_numpy` in scalars."""
+    r0, r1, r2, a, b, c = (float(v) for v in xi)
+    theta2 = a * a + b * b + c * c
+    if theta2 < _SMALL_ANGLE_64:
+        A = 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42))
+        Bc = 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56))
+        C = 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72))
+    else:
+        t = math.sqrt(theta2)
+        sn, cs = math.sin(t), math.cos(t)
+        A, Bc, C = sn / t, (1 - cs) / theta2, (t - sn) / (theta2 * t)
+    W = np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
+    W2 = W @ W
+    out = np.eye(4)
+    out[:3, :3] += A * W + Bc * W2
+    out[:3, 3] = (np.eye(3) + Bc * W + C * W2) @ np.array([r0, r1, r2])
+    return out
 
 
 def _se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
