@@ -10,6 +10,7 @@ import importlib.util
 import json
 import os
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -136,3 +137,26 @@ def print_stage_ratios(before: dict, after: dict, width: int = 20) -> None:
         b, a = before.get(k, 0.0), after.get(k, 0.0)
         print(f"    {k:{width}s} {b:7.2f} -> {a:7.2f} ms/frame ({b / a if a else float('nan'):.2f}x)")
 
+
+
+# A pure-Python busy loop that ends when its parent does (a competing CPU-bound job).
+BUSY_LOOP = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    for _ in range(1_000_000):\n        pass\n"
+
+
+def start_load(n: int) -> list[subprocess.Popen]:
+    """Start ``n`` competing busy-loop processes (one core each) and give them a second to run."""
+    procs = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(n)]
+    time.sleep(1.0)  # let them take their cores before measuring
+    return procs
+
+
+def stop_load(procs: list[subprocess.Popen]) -> None:
+    """Stop what :func:`start_load` started."""
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()

@@ -32,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-from _bench import RESULTS, time_calls
+from _bench import RESULTS, start_load, stop_load, time_calls
 from torchslam.environment import environment_info
 from torchslam.threads import THREADS_ENV, policy_threads, setup_threads
 
@@ -43,7 +43,6 @@ CONDITIONS = ("idle", "busy")
 # Variables that would change a worker's thread pools behind the setting under test.
 _THREAD_VARIABLES = (THREADS_ENV, "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 # A CPU-bound competitor that ends by itself if the script dies without stopping it.
-_BUSY_LOOP = "import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n    for _ in range(1_000_000):\n        pass\n"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -128,23 +127,6 @@ def _run_worker(workload: str, setting: str, args) -> dict:
     return row
 
 
-def _start_load(n: int) -> list[subprocess.Popen]:
-    procs = [subprocess.Popen([sys.executable, "-c", _BUSY_LOOP]) for _ in range(n)]
-    time.sleep(1.0)  # let them take their cores before measuring
-    return procs
-
-
-def _stop_load(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
 def _best_try(tries: list[dict]) -> dict:
     """The best of one setting's tries (highest frames/s, shortest time), with every value kept."""
     ok = [t for t in tries if t.get("value")]
@@ -217,7 +199,7 @@ def main() -> None:
     print(f"machine: {result['machine']['cpu']}, {result['machine']['cpu_count']} cores, torch {result['machine']['torch']}; "
           f"default policy: {result['policy_threads']} thread(s)", flush=True)
     for name in CONDITIONS:
-        load = _start_load(args.busy_procs) if name == "busy" else []
+        load = start_load(args.busy_procs) if name == "busy" else []
         cond = {"name": name, "loadavg_start": list(os.getloadavg()), "rows": {}}
         try:
             for w in WORKLOADS:
@@ -235,7 +217,7 @@ def main() -> None:
                     r["slowdown"] = _slowdown(r, best)
                 cond["rows"][w] = rows
         finally:
-            _stop_load(load)
+            stop_load(load)
         cond["loadavg_end"] = list(os.getloadavg())
         result["conditions"].append(cond)
     result["wall_s"] = time.perf_counter() - start
