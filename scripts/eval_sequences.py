@@ -41,10 +41,14 @@ def find_sequences(root: Path) -> list[Path]:
     return sorted(set(found))
 
 
-def evaluate(seq: Path, system: str, frontend: str | None, runs: Path, max_frames: int | None, threaded: bool) -> dict:
+def evaluate(
+    seq: Path, system: str, frontend: str | None, runs: Path, max_frames: int | None, threaded: bool, ahead: bool = True
+) -> dict:
     label = f"{system}-{frontend}" if frontend else system
     out = runs / f"{seq.name}-{label}"
     overrides = [] if frontend is None else [f"frontend={frontend}", f"threaded={str(threaded).lower()}"]
+    if not ahead:
+        overrides.append("prepare_ahead=false")
     # The script owns its run folders and refreshes them on every call.
     options = RunOptions(system=system, data=str(seq), out=out, tensorboard=False, max_frames=max_frames, overwrite=True)
     m = run(options, overrides=overrides)
@@ -128,6 +132,9 @@ def main() -> None:
     ap.add_argument("--with-nislam", action="store_true", help="add NI-SLAM rows (default config) for comparison")
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--synchronous", action="store_true", help="optimise inline instead of in the background thread")
+    ap.add_argument("--inline-prepare", action="store_true",
+                    help="prepare each frame inside track (prepare_ahead=false): stage times are then each stage's own, "
+                    "not those of the ahead thread beside tracking")
     ap.add_argument("--runs", type=Path, default=ROOT / "logs" / "eval_sequences", help="where the run folders go")
     ap.add_argument("--out", type=Path, default=RESULTS / "eval_sequences", help="output stem (.json and .md)")
     args = ap.parse_args()
@@ -137,9 +144,9 @@ def main() -> None:
     rows = []
     for seq in seqs:
         for fe in args.frontends:
-            rows.append(evaluate(seq, "gcslam", fe, args.runs, args.max_frames, not args.synchronous))
+            rows.append(evaluate(seq, "gcslam", fe, args.runs, args.max_frames, not args.synchronous, not args.inline_prepare))
         if args.with_nislam:
-            rows.append(evaluate(seq, "nislam", None, args.runs, args.max_frames, True))
+            rows.append(evaluate(seq, "nislam", None, args.runs, args.max_frames, True, not args.inline_prepare))
     env = environment_info()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     payload = {"environment": env, "targets": TARGETS, "paper_table_i_cm": PAPER_TABLE_I_CM, "paper_rate": PAPER_RATE, "rows": rows}
