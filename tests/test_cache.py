@@ -115,3 +115,28 @@ def test_node_rays_are_cached_per_rays_tensor_and_follow_in_place_changes():
     rays.mul_(2)  # a new version: recomputed
     b = ortho._node_rays(rays, torch.float64, H, W, vn, un)
     assert b is not a and torch.allclose(b, 2 * a)
+
+
+def test_fifo_cache_stays_bounded_and_consistent_under_threads():
+    """Frames are prepared on another thread beside tracking: concurrent insertions into one
+    full cache never raise, never exceed the bound, and every stored value is its key's."""
+    import threading
+
+    cache = FifoCache(4)
+    errors = []
+
+    def hammer(offset: int) -> None:
+        try:
+            for i in range(5000):
+                key = (offset + i) % 13
+                assert cache.get_or_compute(key, lambda: key * 10) == key * 10
+        except Exception as exc:  # noqa: BLE001 - collected for the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=hammer, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and len(cache) <= 4
+    assert all(cache.get(k) in (None, k * 10) for k in range(13))

@@ -10,6 +10,7 @@ reused while the entry exists.
 
 from __future__ import annotations
 
+import threading
 from typing import Callable, Generic, Hashable, TypeVar
 
 from torch import Tensor
@@ -24,6 +25,10 @@ class FifoCache(Generic[V]):
 
     A hit does not refresh an entry's age (insertion order, not recency): the caches here
     hold a handful of cameras or sizes, where the two orders evict the same entries.
+
+    Safe to share between threads (``run_sequence`` prepares frames on a thread of its own): an
+    insertion and its eviction happen under a lock; two threads that miss the same key at once
+    may both compute it, and the later value is kept.
     """
 
     def __init__(self, maxsize: int = 8):
@@ -31,6 +36,7 @@ class FifoCache(Generic[V]):
             raise ValueError(f"maxsize: expected a positive integer, got {maxsize!r}")
         self.maxsize = maxsize
         self._entries: dict[Hashable, V] = {}
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -44,9 +50,10 @@ class FifoCache(Generic[V]):
 
     def put(self, key: Hashable, value: V) -> V:
         """Store ``value`` under ``key`` (dropping the oldest entry when full) and return it."""
-        if key not in self._entries and len(self._entries) >= self.maxsize:
-            self._entries.pop(next(iter(self._entries)))
-        self._entries[key] = value
+        with self._lock:
+            if key not in self._entries and len(self._entries) >= self.maxsize:
+                self._entries.pop(next(iter(self._entries)))
+            self._entries[key] = value
         return value
 
     def get_or_compute(self, key: Hashable, compute: Callable[[], V]) -> V:
@@ -57,7 +64,8 @@ class FifoCache(Generic[V]):
         return self.put(key, compute())
 
     def clear(self) -> None:
-        self._entries.clear()
+        with self._lock:
+            self._entries.clear()
 
 
 def tensor_key(t: Tensor) -> tuple:

@@ -155,10 +155,11 @@ def voxel_downsample(points: torch.Tensor, colors: torch.Tensor, voxel: float) -
     P = points.to(torch.float64)
     C = colors.to(torch.float64)
     if voxel > 0 and len(P):
-        key = torch.floor(P / voxel).to(torch.int64)
+        # In place where possible: each fresh (P, 3) buffer costs page faults on first touch.
+        key = torch.div(P, voxel).floor_().to(torch.int64)
         # One int64 per voxel, ordered as the (x, y, z) rows lexicographically: a 1-D unique is
         # much cheaper than ``unique(dim=0)`` over rows.
-        key = key - key.min(0).values
+        key -= key.min(0).values
         span = key.max(0).values + 1
         if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**62:
             flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
