@@ -155,3 +155,16 @@ def test_a_frame_whose_preparation_failed_is_tracked_inline_and_its_error_named(
     with pytest.raises(type(err.value)) as err_plain:
         run_sequence(plain, EditedSequence(seq, corrupt))
     assert str(err.value) == str(err_plain.value)
+
+
+def test_ahead_results_hand_a_frame_its_own_result_once():
+    from torchslam.systems.base import AheadResults
+
+    seq = generate_sequence(SyntheticConfig(frames=2, width=32, height=24, trajectory="translate"))
+    first, again = seq[0], seq[0]  # equal index, other frame objects
+    store, stage_ms = AheadResults(), {"backproject": 1.0}
+    store.put(first, "cloud", {"backproject": 2.0})
+    assert store.take(again, stage_ms) == (False, None) and stage_ms == {"backproject": 1.0}
+    store.put(first, None, {"backproject": 2.0})  # None is a result too (an attitude gap)
+    assert store.take(first, stage_ms) == (True, None) and stage_ms == {"backproject": 3.0}
+    assert store.take(first, stage_ms) == (False, None)

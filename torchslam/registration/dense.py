@@ -1011,7 +1011,7 @@ def _update_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: 
             np.linalg.cholesky(H)
             delta = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
-            delta = None
+            pass
     solved = delta is not None and bool(np.isfinite(delta).all())
     if not solved:
         delta = np.zeros(6)

@@ -26,7 +26,7 @@ from ..errors import ConfigError
 from .memory import check_run_memory
 
 __all__ = [
-    "AheadFrames", "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "drive", "empty_output",
+    "AheadFrames", "AheadResults", "RunResult", "SlamSystem", "StepReport", "SystemOutput", "check_max_frames", "drive", "empty_output",
     "frame_poses", "resample_poses", "run_sequence", "track_each",
 ]
 
@@ -362,7 +362,7 @@ class AheadFrames:
     An error while reading a frame is raised by ``next`` in the frame's place, as the plain
     iterator would raise it. An error inside ``prepare_ahead`` is not raised here: the frame is
     handed out unprepared and ``track`` prepares it inline, raising it there, in the frame's
-    place. :meth:`close` (also on garbage collection of a finished iteration) stops the thread.
+    place. :meth:`close` stops the thread (``drive`` calls it once the sequences are done).
     """
 
     def __init__(self, system: SlamSystem, frames: Iterable[Frame], depth: int = 2) -> None:
@@ -437,6 +437,35 @@ class AheadFrames:
             except Exception:  # noqa: BLE001 - track prepares the frame inline and raises it there
                 logger.debug("prepare_ahead failed for frame %s; tracking prepares it", frame.index, exc_info=True)
             self._results.put(("frame", frame, time.perf_counter() - t0))
+
+
+class AheadResults:
+    """What a system's ``prepare_ahead`` left for its ``track``, by frame.
+
+    The ahead thread :meth:`put`\ s a frame's result with the stage times it took; ``track``
+    :meth:`take`\ s it (the result of that very frame object only) and adds the stage times to its
+    own. Each frame's entry is written once, by one thread, and taken once, by the other.
+    """
+
+    def __init__(self) -> None:
+        self._items: dict[int, tuple[Frame, Any, dict[str, float]]] = {}
+
+    def put(self, frame: Frame, value: Any, stage_ms: dict[str, float]) -> None:
+        self._items[frame.index] = (frame, value, stage_ms)
+
+    def take(self, frame: Frame, stage_ms: dict[str, float]) -> tuple[bool, Any]:
+        """``(True, value)`` where ``frame`` was prepared ahead (its stage times are added to
+        ``stage_ms``), else ``(False, None)``: ``track`` prepares it inline."""
+        item = self._items.pop(frame.index, None)
+        if item is None or item[0] is not frame:
+            return False, None
+        for stage, ms in item[2].items():
+            stage_ms[stage] = stage_ms.get(stage, 0.0) + ms
+        return True, item[1]
+
+    def clear(self) -> None:
+        """Drop what was prepared and never tracked (a stop before the end)."""
+        self._items.clear()
 
 
 def add_stage_ms(stage_ms: dict[str, float], stage: str, t0: float) -> float:

@@ -57,7 +57,7 @@ from ...fastgo import PairStats, optimize_batch
 from ...geometry import PinholeCamera, backproject_depth, project_points, se3_exp, se3_inverse, se3_log, undistorted_rays
 from ...registration.dense import DenseFrame
 from ...registration.sparse import FrameFeatures, register_sparse_batch
-from ..base import StepReport, SystemOutput, add_stage_ms
+from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
@@ -94,18 +94,6 @@ class _TrackKeyframe:
     dense: DenseFrame | None  # the dense pyramid of the current keyframe only (dense front-end); None for older ones
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
-
-
-@dataclass
-class _Ahead:
-    """A frame as :meth:`GCSlam.prepare_ahead` left it for ``track``."""
-
-    frame: Frame
-    rgb: Tensor
-    depth: Tensor
-    enough: bool  # at least ``min_valid_depth`` valid depth pixels
-    view: PreparedFrame | None  # None where not enough
-    stage_ms: dict[str, float]
 
 
 class GCSlam:
@@ -158,8 +146,9 @@ class GCSlam:
         self._need_unlinked = False
         self._inline_s = 0.0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
-        # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked, by index.
-        self._ahead: dict[int, _Ahead] = {}
+        # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked:
+        # (rgb, depth, enough valid depth, the prepared view or None where not enough).
+        self._ahead = AheadResults()
 
     @property
     def prepares_ahead(self) -> bool:
@@ -177,7 +166,7 @@ class GCSlam:
         clock = _Stopwatch(stage_ms)
         rgb, depth, enough = self._images(frame)
         view = self.frontend.prepare(rgb, depth, keyframe=False, lap=clock.lap) if enough else None
-        self._ahead[frame.index] = _Ahead(frame, rgb, depth, enough, view, stage_ms)
+        self._ahead.put(frame, (rgb, depth, enough, view), stage_ms)
 
     def _images(self, frame: Frame) -> tuple[Tensor, Tensor, bool]:
         # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.
@@ -194,11 +183,9 @@ class GCSlam:
         cfg = self.cfg
         clock = _Stopwatch(self.stage_ms)
         self.last_frame_index = frame.index
-        ahead = self._ahead.pop(frame.index, None)
-        if ahead is not None and ahead.frame is frame:
-            rgb, depth, enough, view = ahead.rgb, ahead.depth, ahead.enough, ahead.view
-            for stage, ms in ahead.stage_ms.items():
-                self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + ms
+        found, ahead = self._ahead.take(frame, self.stage_ms)
+        if found:
+            rgb, depth, enough, view = ahead
         else:
             rgb, depth, enough = self._images(frame)
             view = None

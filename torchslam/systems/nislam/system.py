@@ -75,7 +75,7 @@ from ...kcc import (
 )
 from ...loop import MILDConfig, MILDDatabase
 from ...optim import LMConfig
-from ..base import SystemOutput, add_stage_ms
+from ..base import AheadResults, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
 from ..memory import NISLAM_BYTES_PER_ORTHO_PIXEL
 from ..monitor import Monitor
@@ -187,9 +187,9 @@ class NISlam:
         self._history_start = 0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         self._response_keyframe: int | None = None  # keyframe whose first match's response is to be logged
-        # Frames done by ``prepare_ahead`` (another thread) and not yet tracked, by index:
-        # (frame, its input with the cloud or None at an attitude gap, milliseconds).
-        self._ahead: dict[int, tuple[Frame, FrameInput | None, float]] = {}
+        # Frames done by ``prepare_ahead`` (another thread) and not yet tracked: each one's input
+        # with its cloud, or None at an attitude gap.
+        self._ahead = AheadResults()
 
     def _tic(self) -> float:
         return time.perf_counter()
@@ -218,11 +218,8 @@ class NISlam:
             not tracked).
         """
         self.last_frame_index = frame.index
-        ahead = self._ahead.pop(frame.index, None)
-        if ahead is not None and ahead[0] is frame:
-            _, input, ms = ahead
-            self.stage_ms["backproject"] = self.stage_ms.get("backproject", 0.0) + ms
-        else:
+        found, input = self._ahead.take(frame, self.stage_ms)
+        if not found:
             input = self._frame_input(frame)
         if input is None:
             self.untracked["attitude_gap"] += 1
@@ -244,7 +241,7 @@ class NISlam:
         input = self._frame_input(frame)
         if input is not None:
             input = replace(input, cloud=backproject([input])[0])
-        self._ahead[frame.index] = (frame, input, 1000.0 * (time.perf_counter() - t0))
+        self._ahead.put(frame, input, {"backproject": 1000.0 * (time.perf_counter() - t0)})
 
     def _frame_input(self, frame: Frame) -> FrameInput | None:
         """The attitude at the frame's two instants and its images on the device; None at a gap."""
