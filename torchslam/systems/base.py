@@ -442,9 +442,10 @@ class AheadFrames:
 class AheadResults:
     """What a system's ``prepare_ahead`` left for its ``track``, by frame.
 
-    The ahead thread :meth:`put`\ s a frame's result with the stage times it took; ``track``
-    :meth:`take`\ s it (the result of that very frame object only) and adds the stage times to its
-    own. Each frame's entry is written once, by one thread, and taken once, by the other.
+    The ahead thread puts a frame's result with the stage times it took (:meth:`put`);
+    ``track`` takes it (:meth:`take`: the result of that very frame object only) and adds the
+    stage times to its own. Each frame's entry is written once, by one thread, and taken once,
+    by the other.
     """
 
     def __init__(self) -> None:
