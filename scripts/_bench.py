@@ -125,9 +125,44 @@ def write_json(path: Path | None, data) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n")
 
 
+SYSTEMS = ("nislam", "gcslam-sparse", "gcslam-dense")
+
+
+def system_by_name(name: str, **values):
+    """A fresh system for a benchmark's name (``SYSTEMS``) at the defaults plus ``values`` (config keys).
+
+    Raises:
+        SystemExit: naming an unknown system.
+    """
+    from torchslam.config import config_from_dict
+    from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+    from torchslam.systems.nislam import NISlam, NISlamConfig
+
+    if name == "nislam":
+        return NISlam(config_from_dict(NISlamConfig, values))
+    if name in SYSTEMS:
+        return GCSlam(config_from_dict(GCSlamConfig, {"frontend": name.split("-", 1)[1], **values}))
+    raise SystemExit(f"--systems: unknown system {name!r} ({', '.join(SYSTEMS)})")
+
+
+def reference_of(seq):
+    """The trajectory a run of ``seq`` is scored against: the raw ground truth where there is one, else the per-frame one."""
+    raw = getattr(seq, "groundtruth_raw", None)
+    return raw if raw is not None else seq.groundtruth
+
+
+def ate_cm(out, seq) -> float | None:
+    """ATE RMSE in cm of a run's output against ``reference_of(seq)`` (None without ground truth)."""
+    from torchslam.data import Trajectory
+    from torchslam.eval import ate
+
+    ref = reference_of(seq)
+    return None if ref is None else 100 * float(ate(Trajectory(out.timestamps, out.T_wc), ref).stats["rmse"])
+
+
 def tree_ate_cm(tree: dict, out, seq) -> float:
     """ATE RMSE in cm of a run's output with ``tree``'s evaluation, against the raw ground truth where there is one."""
-    ref = seq.groundtruth_raw if getattr(seq, "groundtruth_raw", None) is not None else seq.groundtruth
+    ref = reference_of(seq)
     return 100 * tree["torchslam.eval"].ate(tree["torchslam.data"].Trajectory(out.timestamps, out.T_wc), ref).stats["rmse"]
 
 

@@ -21,33 +21,19 @@ from pathlib import Path
 
 import torch
 
-from _bench import RESULTS, data_root, load_average, start_load, stop_load, write_json
-from torchslam.config import config_from_dict
+from _bench import RESULTS, ate_cm, data_root, load_average, start_load, stop_load, system_by_name, write_json
 from torchslam.data.tum import TUMSequence
 from torchslam.environment import environment_info
-from torchslam.eval import ate
-from torchslam.data import Trajectory
 from torchslam.systems import run_sequence
-from torchslam.systems.gcslam import GCSlam, GCSlamConfig
-from torchslam.systems.nislam import NISlam, NISlamConfig
 
 SPLIT = {"tum_fr1_xyz": "tuning", "7scenes_redkitchen": "tuning", "hololens_dvmvs": "held out"}
 
 
-def _system(name: str, ahead: bool):
-    if name == "nislam":
-        return NISlam(config_from_dict(NISlamConfig, {"prepare_ahead": ahead}))
-    frontend = name.split("-", 1)[1]
-    return GCSlam(config_from_dict(GCSlamConfig, {"frontend": frontend, "prepare_ahead": ahead}))
-
-
 def _run(system_name: str, sequence: str, ahead: bool) -> dict:
     seq = TUMSequence(data_root() / sequence, prefetch=2)
-    res = run_sequence(_system(system_name, ahead), seq)
+    res = run_sequence(system_by_name(system_name, prepare_ahead=ahead), seq)
     out = res.output
-    ref = seq.groundtruth_raw or seq.groundtruth
-    err = float(ate(Trajectory(out.timestamps, out.T_wc), ref).stats["rmse"]) if ref is not None else None
-    return {"fps": res.fps_end_to_end, "fps_compute": res.fps_compute, "ate_cm": None if err is None else 100 * err, "T_wc": out.T_wc}
+    return {"fps": res.fps_end_to_end, "fps_compute": res.fps_compute, "ate_cm": ate_cm(out, seq), "T_wc": out.T_wc}
 
 
 def main() -> None:

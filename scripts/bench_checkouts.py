@@ -25,7 +25,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _bench import RESULTS, data_root, load_average, write_json
+from _bench import RESULTS, ate_cm, data_root, load_average, system_by_name, write_json
 
 HERE = Path(__file__).resolve()
 
@@ -34,25 +34,13 @@ def _worker(system: str, sequence: str) -> None:
     import torch
 
     torch.set_num_threads(1)
-    from torchslam.config import config_from_dict
-    from torchslam.data import Trajectory
+    import torchslam
     from torchslam.data.tum import TUMSequence
-    from torchslam.eval import ate
     from torchslam.systems import run_sequence
-    from torchslam.systems.gcslam import GCSlam, GCSlamConfig
-    from torchslam.systems.nislam import NISlam, NISlamConfig
 
     seq = TUMSequence(data_root() / sequence, prefetch=2)
-    if system == "nislam":
-        s = NISlam(NISlamConfig())
-    else:
-        s = GCSlam(config_from_dict(GCSlamConfig, {"frontend": system.split("-", 1)[1]}))
-    res = run_sequence(s, seq)
-    out = res.output
-    ref = seq.groundtruth_raw or seq.groundtruth
-    err = None if ref is None else 100 * float(ate(Trajectory(out.timestamps, out.T_wc), ref).stats["rmse"])
-    import torchslam
-
+    res = run_sequence(system_by_name(system), seq)
+    err = ate_cm(res.output, seq)
     print(json.dumps({"fps": res.fps_end_to_end, "ate_cm": err, "torchslam": str(Path(torchslam.__file__).parent)}))
 
 

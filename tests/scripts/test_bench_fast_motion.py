@@ -21,4 +21,4 @@ def test_bad_strides_name_the_item(item, says):
 
 def test_unknown_system_is_refused_by_name():
     with pytest.raises(SystemExit, match="orbslam"):
-        bench._system("orbslam")
+        bench.system_by_name("orbslam")
