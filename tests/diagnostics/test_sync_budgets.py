@@ -102,7 +102,7 @@ def test_dense_iteration_at_most_one_sync(small_frames, robust, device_path):
 
     def run(k):
         # tol 0: no pair stops by its step, every iteration runs (or a step that raised the cost ends it)
-        return register_dense_frames(fi, fj, None, dataclasses.replace(cfg, iterations=(0, k), tol=0.0, robust=robust))
+        return register_dense_frames(fi, fj, None, dataclasses.replace(cfg, iterations=(0, k), tol=0.0, finest_tol=0.0, robust=robust))
 
     counts = per_iteration(run, 5)
     assert all(n <= 1 for n, _ in counts), counts

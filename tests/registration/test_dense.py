@@ -76,7 +76,8 @@ def fr1(shared_data):
 @pytest.mark.parametrize(
     "key, value",
     [("levels", 0), ("iterations", (10, 10)), ("robust", "cauchy"), ("min_depth", -1.0), ("max_depth", 0.05),
-     ("correspondence_threshold", 0.0), ("geometric_weight", -1.0), ("max_correspondences", 0), ("tol", float("nan"))],
+     ("correspondence_threshold", 0.0), ("geometric_weight", -1.0), ("max_correspondences", 0), ("tol", float("nan")),
+     ("finest_tol", -1e-3)],
 )
 def test_config_rejects_bad_values(key, value):
     with pytest.raises(ConfigError, match=key):
@@ -279,6 +280,26 @@ def test_recovers_planted_pose_on_synthetic_frames(synthetic, robust):
     assert (res.residual_geometric < 0.01).all() and (res.residual_photometric < 0.05).all()
     assert (res.iterations > 0).all()
     assert res.T_ij.dtype == F64 and len(res) == 2
+
+
+def test_finest_tol_ends_the_working_resolution_after_one_small_step(synthetic):
+    cam, rgb, depth, T_gt = synthetic
+    args = (rgb[[0, 0]], depth[[0, 0]], rgb[1:], depth[1:], cam)
+    coarse = register_dense(*args, cfg=DenseConfig(iterations=(20, 15, 0)))
+    one = register_dense(*args, cfg=DenseConfig(finest_tol=1e9))
+    tight = register_dense(*args, cfg=DenseConfig(finest_tol=0.0))
+    default = register_dense(*args)
+    # A tolerance nothing falls short of: exactly one (kept) step at the working resolution after the coarse levels.
+    assert torch.equal(one.iterations, coarse.iterations + 1)
+    # A zero tolerance iterates on there (until a step raises the cost or the cap).
+    assert (tight.iterations > one.iterations).all()
+    assert (default.iterations <= tight.iterations).all()
+    # The one step is what the accuracy needs: within 0.2 mm of iterating to the end.
+    for res in (one, default):
+        dt, dr = pose_error(res.T_ij, T_gt)
+        dt_tight, _ = pose_error(tight.T_ij, T_gt)
+        assert (dt < 5e-4).all() and (dr < 0.02).all(), (dt, dr)
+        assert ((dt - dt_tight).abs() < 2e-4).all(), (dt, dt_tight)
 
 
 def test_recovers_planted_pose_with_kinect_noise(synthetic):
