@@ -189,16 +189,19 @@ class DenseConfig:
             the finest iterations.
         tol: a pair stops at a level when its step's twist norm is below this (metres/radians).
             The IRLS steps shrink only by about half per iteration, so a tighter tolerance buys
-            many iterations for sub-millimetre changes; the default is 3e-4 (0.3 mm, 0.3 mrad):
-            against 1e-4 it takes about 20 % fewer iterations for the same ATE to within 0.02 cm
-            (TUM fr1/xyz, 7-Scenes redkitchen, synthetic hand-held seeds 0-4; held out: HoloLens,
-            seeds 100-104; ``scripts/bench_dense.py``). Coarse levels only: see ``finest_tol``.
+            many iterations for sub-millimetre changes that the finer levels redo anyway; the
+            default is 6e-4 (0.6 mm, 0.6 mrad). 3e-4 took about 20 % fewer iterations than 1e-4
+            for the same ATE to within 0.02 cm, and 6e-4 makes registration another 1.11-1.14 x
+            faster than 3e-4 with ATE within 0.005 cm (TUM fr1/xyz, 7-Scenes redkitchen, synthetic
+            seeds 0-4; held out: HoloLens, seeds 100-104; ``scripts/bench_dense.py``); 1e-3 was
+            1.2 x faster but 0.03 cm worse on 7-Scenes. Coarse levels only: see ``finest_tol``.
         finest_tol: ``tol`` at the working resolution (level 0). After the coarse levels have
             converged, the first step there is mostly below a millimetre, and a second iteration
             only confirms it: 1e-3 (1 mm, 1 mrad) keeps one step for nearly every pair (about 1.03
             instead of 2.3 warps at that level on TUM fr1/xyz) and iterates on only where the
             first step was large, i.e. under fast motion. Against 3e-4 registration runs about
-            1.2 x faster for the same ATE (``scripts/bench_dense.py``; README, Results: GC-SLAM).
+            1.2 x faster for the same ATE (at ``tol`` 3e-4; ``scripts/bench_dense.py``; README, Results:
+            GC-SLAM).
             A hard cap of one step there (``iterations[-1] = 1``) is as fast but loses those
             cases (HoloLens at every third frame 0.85 -> 1.49 cm).
     """
@@ -221,7 +224,7 @@ class DenseConfig:
     max_correspondences: int = 50000
     correspondence_threshold: float = 0.02
     min_correspondences: int = 1000
-    tol: float = 3e-4
+    tol: float = 6e-4
     finest_tol: float = 1e-3
     finest_pixel_step: int = 2
 
