@@ -6,7 +6,8 @@ the data folder is missing). Timed, each as the best and the median of ``--repea
 * the full (2000, 2000) distance matrix with the torch kernels ``swar`` (int64 SWAR popcount),
   ``lut`` (byte lookup table) and ``matmul`` (±1 GEMM);
 * nearest-neighbour matching: ``match_descriptors`` with the torch backend (each kernel), with
-  the OpenCV backend (``cv2.batchDistance``), and OpenCV's ``BFMatcher(NORM_HAMMING).match``;
+  the OpenCV backend (``cv2.batchDistance``), the int8 GEMM backend (``torch._int_mm``, the CPU
+  default), and OpenCV's ``BFMatcher(NORM_HAMMING).match``;
 * the same on CUDA when a GPU is present (the path the torch backend exists for);
 * MILD: inserting real keyframes (every 5th frame of the three sequences) one by one, and
   querying the full database with one frame of each sequence.
@@ -71,6 +72,8 @@ def _matching_rows(d1, d2, repeat: int, device: str) -> list[dict]:
                      **_time(lambda: bf.match(an, bn), repeat)})
         rows.append({"task": "nearest neighbour", "impl": "opencv backend (batchDistance)", "device": "cpu",
                      **_time(lambda: match_descriptors(d1, d2, backend="opencv"), repeat)})
+        rows.append({"task": "nearest neighbour", "impl": "int8 backend (torch._int_mm)", "device": "cpu",
+                     **_time(lambda: match_descriptors(d1, d2, backend="int8"), repeat)})
         rows.append({"task": "nearest neighbour", "impl": "auto backend", "device": "cpu",
                      **_time(lambda: match_descriptors(d1, d2), repeat)})
     return rows

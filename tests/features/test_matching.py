@@ -136,7 +136,7 @@ def _bf_nearest(a: np.ndarray, b: np.ndarray):
     return idx[order], dist[order]
 
 
-@pytest.mark.parametrize("backend", ["torch", "opencv"])
+@pytest.mark.parametrize("backend", ["torch", "opencv", "int8"])
 @pytest.mark.parametrize("kernel", ["swar", "matmul"])
 def test_nearest_neighbour_equals_opencv_bfmatcher(backend, kernel):
     gen = torch.Generator().manual_seed(5)
@@ -161,7 +161,7 @@ def test_nearest_neighbour_on_real_orb_descriptors(shared_data):
     rgb = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float() / 255.0
     f1, f2 = extract_orb(rgb, ORBConfig(n_features=1000))
     ref_idx, ref_dist = _bf_nearest(f1.descriptors.numpy(), f2.descriptors.numpy())
-    for backend in ("torch", "opencv"):
+    for backend in ("torch", "opencv", "int8"):
         m = match_descriptors(f1.descriptors, f2.descriptors, max_distance=256, backend=backend)
         assert np.array_equal(m.distances.numpy(), ref_dist.astype(np.int32))
     # GC-SLAM default threshold keeps a large share between consecutive frames.
@@ -189,7 +189,7 @@ def _np_match(a, b, max_distance, mutual, ratio):
     return out
 
 
-@pytest.mark.parametrize("backend", ["torch", "opencv"])
+@pytest.mark.parametrize("backend", ["torch", "opencv", "int8"])
 @pytest.mark.parametrize("mutual,ratio,max_distance", [(False, None, 50), (True, None, 60), (False, 0.8, 256), (True, 0.7, 40)])
 def test_match_rules_equal_loop_reference(backend, mutual, ratio, max_distance):
     gen = torch.Generator().manual_seed(6)
@@ -201,7 +201,7 @@ def test_match_rules_equal_loop_reference(backend, mutual, ratio, max_distance):
     assert len(ref) > 10  # the rules are exercised, not vacuous
 
 
-@pytest.mark.parametrize("kernel,backend", [("swar", "torch"), ("lut", "torch"), ("matmul", "torch"), ("swar", "opencv")])
+@pytest.mark.parametrize("kernel,backend", [("swar", "torch"), ("lut", "torch"), ("matmul", "torch"), ("swar", "opencv"), ("swar", "int8"), ("swar", "auto")])
 def test_batched_matching_with_padding_equals_per_pair(kernel, backend):
     gen = torch.Generator().manual_seed(7)
     sets1, sets2 = [], []
@@ -229,7 +229,7 @@ def test_batched_matching_with_padding_equals_per_pair(kernel, backend):
 
 def test_empty_inputs_give_empty_matches():
     gen = torch.Generator().manual_seed(8)
-    for backend in ("torch", "opencv"):
+    for backend in ("torch", "opencv", "int8"):
         m = match_descriptors(_rand((0, 32), gen), _rand((5, 32), gen), backend=backend)
         assert m.pairs.shape == (0, 2) and m.distances.shape == (0,)
         m = match_descriptors(_rand((5, 32), gen), _rand((0, 32), gen), backend=backend)
@@ -272,3 +272,14 @@ def test_cuda_kernels_equal_cpu():
     m_gpu = match_descriptors(a.cuda(), b.cuda(), mutual=True)
     m_cpu = match_descriptors(a, b, mutual=True, backend="torch")
     assert torch.equal(m_gpu.pairs.cpu(), m_cpu.pairs) and torch.equal(m_gpu.distances.cpu(), m_cpu.distances)
+
+
+def test_auto_backend_is_int8_on_the_cpu_and_opencv_without_an_int8_gemm(monkeypatch):
+    from torchslam.features import matching
+
+    cpu = torch.device("cpu")
+    assert matching._resolve_backend("auto", cpu) is (matching.MatchBackend.INT8 if matching._INT8_GEMM else matching.MatchBackend.OPENCV)
+    monkeypatch.setattr(matching, "_INT8_GEMM", False)
+    assert matching._resolve_backend("auto", cpu) is matching.MatchBackend.OPENCV
+    with pytest.raises(ConfigError, match="backend: 'int8' needs torch._int_mm"):
+        matching._resolve_backend("int8", cpu)

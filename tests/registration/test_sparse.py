@@ -443,9 +443,10 @@ def test_torch_matching_backend_gives_the_same_result():
     g = torch.Generator().manual_seed(12)
     pairs = [_planted_features(g, n, 30, 30, _random_pose(g), 0.4)[:2] for n in (120, 70)]
     a = register_sparse_batch([p[0] for p in pairs], [p[1] for p in pairs], SparseConfig(match_backend="opencv"))
-    b = register_sparse_batch([p[0] for p in pairs], [p[1] for p in pairs], SparseConfig(match_backend="torch"))
-    assert torch.equal(a.inliers, b.inliers) and torch.equal(a.num_matches, b.num_matches)
-    torch.testing.assert_close(a.T_ij, b.T_ij, rtol=0, atol=1e-12)
+    for backend in ("torch", "int8"):
+        b = register_sparse_batch([p[0] for p in pairs], [p[1] for p in pairs], SparseConfig(match_backend=backend))
+        assert torch.equal(a.inliers, b.inliers) and torch.equal(a.num_matches, b.num_matches)
+        torch.testing.assert_close(a.T_ij, b.T_ij, rtol=0, atol=1e-12)
 
 
 def test_generator_gives_repeatable_results_and_the_seed_is_used():

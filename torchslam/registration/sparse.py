@@ -125,9 +125,10 @@ class SparseConfig:
         min_depth: keypoints with depth below this (metres) get no 3-D point.
         max_depth: keypoints with depth above this (metres) get no 3-D point.
         seed: base seed of the random choices when no generator is given.
-        match_backend: ``auto`` matches each pair with OpenCV on the CPU (faster there than the
-            batched torch kernel for the few pairs of one step) and all pairs at once in torch
-            elsewhere; ``opencv`` or ``torch`` force one.
+        match_backend: ``auto`` matches each pair with one int8 GEMM on the CPU (OpenCV where
+            torch has none; both faster there than the batched torch kernel for the few pairs of
+            one step) and all pairs at once in torch elsewhere; ``int8``, ``opencv`` or
+            ``torch`` force one. All give the same matches.
         guided_radius: window of guided matching, pixels (0 disables it). When a predicted pose
             is given (:func:`register_sparse_batch`'s ``T_pred``), each frame-j keypoint is
             compared only with the frame-i keypoints whose 3-D points, moved by the prediction,
