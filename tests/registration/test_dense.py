@@ -523,3 +523,28 @@ def test_valid_aware_depth_reduction_by_three_matches_loop():
             v = block[(block >= 0.1) & (block <= 10.0)]
             ref = v.mean() if len(v) and v.max() - v.min() <= 0.04 * v.min() else torch.tensor(0.0, dtype=F64)
             torch.testing.assert_close(out[0, 0, r, c], ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("k, bounds", [(2, None), (2, (0.1, 10.0)), (3, (0.1, 10.0)), (3, None)])
+def test_host_depth_reduction_equals_the_torch_one_bit_for_bit(k, bounds):
+    """The OpenCV path of ``_reduce_depth`` (CPU, float32) gives the torch path's bits, with
+    holes, NaN, +-inf, negative, out-of-range and disagreeing blocks, on a strided batch."""
+    g = torch.Generator().manual_seed(21)
+    d = torch.linspace(0.8, 4.0, 83).expand(2, 1, 61, 83) + 0.02 * torch.rand(2, 1, 61, 83, generator=g)  # mostly agreeing
+    u = torch.rand(d.shape, generator=g)
+    d[u < 0.10] = 0.0
+    d[(u > 0.10) & (u < 0.12)] = float("nan")
+    d[(u > 0.12) & (u < 0.13)] = float("inf")
+    d[(u > 0.13) & (u < 0.14)] = -1.0
+    d[(u > 0.14) & (u < 0.15)] = 20.0
+    d[(u > 0.15) & (u < 0.16)] = 0.05
+    d[:, :, 10:20, 10:30] = 1.0 + 3 * torch.rand(2, 1, 10, 20, generator=g)  # disagreeing blocks
+    d = d[:, :, :, 1:]  # a strided view
+    lo, hi = bounds if bounds else (None, None)
+    host = dense_module._reduce_depth(d, k, 0.05, lo, hi)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+        ref = dense_module._reduce_depth(d, k, 0.05, lo, hi)
+    assert host.shape == ref.shape == (2, 1, 61 // k, 82 // k)
+    assert torch.equal(host.view(torch.int32), ref.view(torch.int32))
+    assert 0.2 < (ref > 0).float().mean() < 0.98  # both outcomes occur

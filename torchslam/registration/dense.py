@@ -78,6 +78,7 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
+import cv2
 import kornia
 import numpy as np
 import torch
@@ -372,6 +373,8 @@ def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi
     no full-resolution masks.
     """
     h, w = depth.shape[-2] // k, depth.shape[-1] // k
+    if k > 1 and depth.dtype == torch.float32 and depth.dim() == 4 and not depth.requires_grad and _host(depth):
+        return _reduce_depth_host(depth, k, tol, lo, hi)
     total = count = dmax = dmin = None
     for a in range(k):
         for b in range(k):
@@ -386,6 +389,39 @@ def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi
                 dmax, dmin = torch.maximum(dmax, d), torch.minimum(dmin, dm)
     ok = (count > 0) & (dmax - dmin <= tol * dmin)
     return torch.where(ok, total / count.clamp_min(1), 0.0)
+
+
+def _reduce_depth_host(depth: Tensor, k: int, tol: float, lo: float | None, hi: float | None) -> Tensor:
+    """:func:`_reduce_depth` of a (B, C, H, W) float32 CPU tensor with OpenCV's single-pass
+    element-wise operations, one image at a time: the same float32 operations in the same order,
+    so the same bits (tested), at about half the time of the torch operations (640x480, k = 2)."""
+    B, C = depth.shape[:2]
+    h, w = depth.shape[-2] // k, depth.shape[-1] // k
+    x = depth.numpy()
+    out = np.empty((B, C, h, w), np.float32)
+    tol32 = np.float32(tol)
+    inf = np.full((h, w), np.inf, np.float32)
+    for b in range(B):
+        for c in range(C):
+            img = x[b, c]
+            total = count = dmax = dmin = None
+            for a in range(k):
+                for e in range(k):
+                    sub = np.ascontiguousarray(img[a : h * k : k, e : w * k : k])
+                    # 255 where valid: > 0 (NaN is not), or inside [lo, hi] (NaN and inf are not).
+                    m = cv2.compare(sub, 0.0, cv2.CMP_GT) if lo is None else cv2.inRange(sub, lo, hi)
+                    d = cv2.bitwise_and(sub, sub, mask=m)  # the depth where valid, else +0
+                    dm = inf.copy()
+                    cv2.copyTo(sub, m, dm)  # the depth where valid, else inf
+                    if total is None:
+                        total, count, dmax, dmin = d, m & 1, d, dm
+                    else:
+                        total, count = cv2.add(total, d), cv2.add(count, m & 1)
+                        dmax, dmin = cv2.max(dmax, d), cv2.min(dmin, dm)
+            ok = (count > 0) & (dmax - dmin <= tol32 * dmin)
+            np.divide(total, np.maximum(count.astype(np.float32), np.float32(1)), out=out[b, c])
+            out[b, c][~ok] = 0.0
+    return torch.from_numpy(out)
 
 
 def _pyrdown(x: Tensor) -> Tensor:
