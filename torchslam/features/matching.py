@@ -445,14 +445,13 @@ def _match_int8(d1: Tensor, d2: Tensor, max_distance, mutual, ratio) -> BatchedM
     return BatchedMatches(index[None], best.to(torch.int32)[None])
 
 
-def _match_opencv_batched(d1, d2, valid1, valid2, max_distance, mutual, ratio, one=None) -> BatchedMatches:
-    """:func:`_match_torch`'s result from OpenCV (or ``one``, a per-pair matcher such as
-    :func:`_match_int8`), one pair per call over its valid descriptors."""
-    one = _match_opencv if one is None else one
+def _match_per_pair(d1, d2, valid1, valid2, max_distance, mutual, ratio, one) -> BatchedMatches:
+    """:func:`_match_torch`'s result from ``one`` (:func:`_match_opencv` or :func:`_match_int8`),
+    one pair per call over its valid descriptors."""
     b, k1 = d1.shape[:2]
     index = torch.full((b, k1), -1, dtype=torch.int64)
     distance = torch.full((b, k1), -1, dtype=torch.int32)
-    for i in range(b):  # OpenCV matches one descriptor pair per call
+    for i in range(b):  # both match one descriptor pair per call
         rows1 = torch.nonzero(valid1[i].cpu()).squeeze(-1)
         rows2 = torch.nonzero(valid2[i].cpu()).squeeze(-1)
         if rows1.numel() == 0 or rows2.numel() == 0:
@@ -463,6 +462,10 @@ def _match_opencv_batched(d1, d2, valid1, valid2, max_distance, mutual, ratio, o
         index[i, rows1[ok]] = rows2[idx[ok]]
         distance[i, rows1] = m.distance[0]
     return BatchedMatches(index.to(d1.device), distance.to(d1.device))
+
+
+# The backends that match one pair per call on the host, and their matcher.
+_PER_PAIR = {MatchBackend.OPENCV: _match_opencv, MatchBackend.INT8: _match_int8}
 
 
 def _check_match_args(max_distance, ratio) -> None:
@@ -520,12 +523,9 @@ def match_descriptors_batched(
         valid2 = torch.ones(d2.shape[:2], dtype=torch.bool, device=d2.device)
     check_shape(valid1, "B K1", "valid1", dims)
     check_shape(valid2, "B K2", "valid2", dims)
-    resolved = _resolve_backend(backend, d1.device)
-    if resolved is MatchBackend.OPENCV:
-        return _match_opencv_batched(d1, d2, valid1.bool(), valid2.bool(), max_distance, mutual, ratio)
-    if resolved is MatchBackend.INT8:
-        res = _match_opencv_batched(d1, d2, valid1.bool(), valid2.bool(), max_distance, mutual, ratio, one=_match_int8)
-        return BatchedMatches(res.index.to(d1.device), res.distance.to(d1.device))
+    one = _PER_PAIR.get(_resolve_backend(backend, d1.device))
+    if one is not None:
+        return _match_per_pair(d1, d2, valid1.bool(), valid2.bool(), max_distance, mutual, ratio, one)
     return _match_torch(d1, d2, valid1.bool(), valid2.bool(), max_distance, mutual, ratio, kernel)
 
 
@@ -583,10 +583,8 @@ def match_descriptors(
     _check_match_args(max_distance, ratio)
     backend = _resolve_backend(backend, d1.device)
     kernel = parse_choice(HammingKernel, kernel, "kernel")
-    if backend is MatchBackend.OPENCV:
-        res = _match_opencv(d1, d2, max_distance, mutual, ratio)
-    elif backend is MatchBackend.INT8:
-        res = _match_int8(d1, d2, max_distance, mutual, ratio)
+    if backend in _PER_PAIR:
+        res = _PER_PAIR[backend](d1, d2, max_distance, mutual, ratio)
     else:
         ones1 = torch.ones(1, d1.shape[0], dtype=torch.bool, device=d1.device)
         ones2 = torch.ones(1, d2.shape[0], dtype=torch.bool, device=d1.device)

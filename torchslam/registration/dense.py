@@ -201,10 +201,9 @@ class DenseConfig:
             only confirms it: 1e-3 (1 mm, 1 mrad) keeps one step for nearly every pair (about 1.03
             instead of 2.3 warps at that level on TUM fr1/xyz) and iterates on only where the
             first step was large, i.e. under fast motion. Against 3e-4 registration runs about
-            1.2 x faster for the same ATE (at ``tol`` 3e-4; ``scripts/bench_dense.py``; README, Results:
-            GC-SLAM).
-            A hard cap of one step there (``iterations[-1] = 1``) is as fast but loses those
-            cases (HoloLens at every third frame 0.85 -> 1.49 cm).
+            1.2 x faster for the same ATE (at ``tol`` 3e-4; ``scripts/bench_dense.py``; README,
+            Results: GC-SLAM). A hard cap of one step there (``iterations[-1] = 1``) is as fast
+            but loses those cases (HoloLens at every third frame 0.85 -> 1.49 cm).
     """
 
     width: int = 320
@@ -393,35 +392,31 @@ def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi
 
 def _reduce_depth_host(depth: Tensor, k: int, tol: float, lo: float | None, hi: float | None) -> Tensor:
     """:func:`_reduce_depth` of a (B, C, H, W) float32 CPU tensor with OpenCV's single-pass
-    element-wise operations, one image at a time: the same float32 operations in the same order,
-    so the same bits (tested), at about half the time of the torch operations (640x480, k = 2)."""
+    element-wise operations: the same float32 operations in the same order, so the same bits
+    (tested), at about half the time of the torch operations (640x480, k = 2). The B x C images,
+    cropped to multiples of k, are stacked into one tall image, whose k x k sub-images are those
+    of every image at once."""
     B, C = depth.shape[:2]
     h, w = depth.shape[-2] // k, depth.shape[-1] // k
-    x = depth.numpy()
-    out = np.empty((B, C, h, w), np.float32)
-    tol32 = np.float32(tol)
-    inf = np.full((h, w), np.inf, np.float32)
-    for b in range(B):
-        for c in range(C):
-            img = x[b, c]
-            total = count = dmax = dmin = None
-            for a in range(k):
-                for e in range(k):
-                    sub = np.ascontiguousarray(img[a : h * k : k, e : w * k : k])
-                    # 255 where valid: > 0 (NaN is not), or inside [lo, hi] (NaN and inf are not).
-                    m = cv2.compare(sub, 0.0, cv2.CMP_GT) if lo is None else cv2.inRange(sub, lo, hi)
-                    d = cv2.bitwise_and(sub, sub, mask=m)  # the depth where valid, else +0
-                    dm = inf.copy()
-                    cv2.copyTo(sub, m, dm)  # the depth where valid, else inf
-                    if total is None:
-                        total, count, dmax, dmin = d, m & 1, d, dm
-                    else:
-                        total, count = cv2.add(total, d), cv2.add(count, m & 1)
-                        dmax, dmin = cv2.max(dmax, d), cv2.min(dmin, dm)
-            ok = (count > 0) & (dmax - dmin <= tol32 * dmin)
-            np.divide(total, np.maximum(count.astype(np.float32), np.float32(1)), out=out[b, c])
-            out[b, c][~ok] = 0.0
-    return torch.from_numpy(out)
+    x = depth[..., : h * k, : w * k].numpy().reshape(B * C * h * k, w * k)
+    total = count = dmax = dmin = None
+    for a in range(k):
+        for e in range(k):
+            sub = np.ascontiguousarray(x[a::k, e::k])  # (B C h, w)
+            # 255 where valid: > 0 (NaN is not), or inside [lo, hi] (NaN and inf are not).
+            m = cv2.compare(sub, 0.0, cv2.CMP_GT) if lo is None else cv2.inRange(sub, lo, hi)
+            d = cv2.bitwise_and(sub, sub, mask=m)  # the depth where valid, else +0
+            dm = np.full_like(sub, np.inf)
+            cv2.copyTo(sub, m, dm)  # the depth where valid, else inf
+            if total is None:
+                total, count, dmax, dmin = d, m & 1, d, dm
+            else:
+                total, count = cv2.add(total, d), cv2.add(count, m & 1)
+                dmax, dmin = cv2.max(dmax, d), cv2.min(dmin, dm)
+    ok = (count > 0) & (dmax - dmin <= np.float32(tol) * dmin)
+    out = np.divide(total, np.maximum(count.astype(np.float32), np.float32(1)))
+    out[~ok] = 0.0
+    return torch.from_numpy(out.reshape(B, C, h, w))
 
 
 def _pyrdown(x: Tensor) -> Tensor:

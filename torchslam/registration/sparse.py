@@ -1034,8 +1034,8 @@ def register_sparse_batch(
     """Register B frame pairs: match, isometry filter, RANSAC and refinement, batched.
 
     Matching runs per pair on the CPU (one int8 GEMM, or OpenCV) and for all pairs at once in
-    torch elsewhere (``cfg.match_backend``); the matches are padded to a common length and every later stage
-    runs on the whole batch with masks. Failure (too few matches or inliers) is reported in
+    torch elsewhere (``cfg.match_backend``); the matches are padded to a common length and every
+    later stage runs on the whole batch with masks. Failure (too few matches or inliers) is reported in
     ``success``, never raised; poses stay finite.
 
     With a prediction ``T_pred`` and ``cfg.guided_radius > 0`` the matches are guided
