@@ -7,6 +7,7 @@ Benchmarks load this file by path (``scripts/_bench.py``'s ``test_references``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -24,11 +25,15 @@ def ransac_rigid_reference(
     valid: Tensor,
     cfg: SparseConfig | None = None,
     generator: torch.Generator | None = None,
+    block: int = 50,
 ) -> tuple[Tensor, Tensor]:
     """Loop over pairs and hypotheses doing what :func:`~torchslam.registration.sparse.ransac_rigid` does.
 
     Consumes the same samples (:func:`ransac_samples` with the same base seed), fits each with
-    its own Kabsch call and scores it from explicit residual vectors.
+    its own Kabsch call and scores it from explicit residual vectors. The adaptive stopping rule
+    (``cfg.ransac_confidence``) is checked in Python floats at the end of every block of
+    ``block`` hypotheses: a pair stops once the hypotheses tried reach
+    ``log(1 - p) / log(1 - w^s)`` at its best inlier ratio ``w``.
 
     Args:
         p_i: (B, M, 3) points in frame i, metres.
@@ -61,6 +66,13 @@ def ransac_rigid_reference(
             count = int(inl.sum())
             if count > best_count:
                 best_count, best_T = count, T
+            tried = h + 1
+            if cfg.ransac_confidence < 1 and (tried % block == 0 or tried == idx.shape[1]):
+                w = max(best_count, 0) / max(int(valid[b].sum()), 1)
+                if w >= 1:
+                    break
+                if w > 0 and math.log(1 - cfg.ransac_confidence) / math.log(1 - w**cfg.ransac_sample) <= tried:
+                    break
         if best_T is not None:
             T_out[b] = best_T
             r = p_j[b] @ best_T[:3, :3].T + best_T[:3, 3] - p_i[b]

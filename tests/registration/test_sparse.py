@@ -120,6 +120,8 @@ def _planted_features(g, n_match, extra_i, extra_j, T_ij, outlier_frac=0.0, inva
         ("isometry_partners", 0),
         ("ransac_iterations", 0),
         ("ransac_sample", 2),
+        ("ransac_confidence", 0.0),
+        ("ransac_confidence", 1.5),
         ("inlier_threshold", 0.0),
         ("huber_delta", float("nan")),
         ("min_depth", -0.1),
@@ -227,6 +229,65 @@ def test_ransac_batched_equals_loop_reference():
     torch.testing.assert_close(T_b, T_r, rtol=0, atol=1e-12)
     assert torch.equal(T_b[2], torch.eye(4, dtype=F64)) and not bool(inl_b[2].any())
     assert int(inl_b[0].sum()) > 0.3 * M
+
+
+@pytest.mark.parametrize("confidence", [0.999, 0.9, 1.0])
+def test_ransac_adaptive_stop_equals_loop_reference(confidence):
+    """Pairs that stop after the first block, after several, and never, in one batch."""
+    g = torch.Generator().manual_seed(15)
+    B, M = 4, 150
+    T = torch.stack([_random_pose(g) for _ in range(B)])
+    parts = [_planted(g, 1, M, T[b : b + 1], outlier_frac=f, noise=0.002) for b, f in enumerate((0.05, 0.45, 0.75, 0.0))]
+    p_i, p_j = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    valid = torch.ones(B, M, dtype=torch.bool)
+    valid[3, 3:] = False  # too few candidates
+    cfg = SparseConfig(ransac_iterations=230, ransac_confidence=confidence)
+    T_b, inl_b = ransac_rigid(p_i, p_j, valid, cfg)
+    T_r, inl_r = ransac_rigid_reference(p_i, p_j, valid, cfg)
+    assert torch.equal(inl_b, inl_r)
+    torch.testing.assert_close(T_b, T_r, rtol=0, atol=1e-12)
+    # Each pair's result is its own: alone it gets the same.
+    for b in range(B):
+        T_1, inl_1 = ransac_rigid(p_i[b : b + 1], p_j[b : b + 1], valid[b : b + 1], cfg)
+        assert torch.equal(inl_1[0], inl_b[b])
+        torch.testing.assert_close(T_1[0], T_b[b], rtol=0, atol=1e-12)
+    # The clean pair is found whatever the rule.
+    assert _pose_error(T_b[0], T[0])[0] < 0.01
+
+
+def test_ransac_adaptive_stop_tries_fewer_hypotheses_on_clean_pairs(monkeypatch):
+    """A pair whose first block finds most candidates inliers stops there; confidence 1 tries all."""
+    import torchslam.registration.sparse as sparse
+
+    g = torch.Generator().manual_seed(16)
+    T = _random_pose(g)[None]
+    p_i, p_j, _ = _planted(g, 1, 200, T, outlier_frac=0.1, noise=0.001)
+    valid = torch.ones(1, 200, dtype=torch.bool)
+    fitted = []
+    real = sparse.umeyama_alignment
+
+    def counting(src, dst, *args, **kwargs):
+        fitted.append(src.shape[0])
+        return real(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(sparse, "umeyama_alignment", counting)
+    ransac_rigid(p_i, p_j, valid, SparseConfig(ransac_confidence=0.999))
+    assert sum(fitted) == 50
+    fitted.clear()
+    ransac_rigid(p_i, p_j, valid, SparseConfig(ransac_confidence=1.0))
+    assert sum(fitted) == 400
+
+
+def test_ransac_needed_hypotheses_match_the_closed_form():
+    from torchslam.registration.sparse import _ransac_needed
+
+    best = torch.tensor([0, 50, 90, 100, -1])
+    cand = torch.tensor([100, 100, 100, 100, 0])
+    got = _ransac_needed(best, cand, 4, 0.999)
+    expected = [math.inf, math.log(0.001) / math.log(1 - 0.5**4), math.log(0.001) / math.log(1 - 0.9**4), 0.0, math.inf]
+    for a, e in zip(got.tolist(), expected):
+        assert a == pytest.approx(e, rel=1e-12, abs=1e-12)
+    assert bool(torch.isinf(_ransac_needed(best, cand, 4, 1.0)).all())
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.002])
@@ -423,6 +484,30 @@ def test_guided_registration_matches_again_around_its_pose_when_the_prediction_w
     both = register_sparse_batch([fi, fi], [fj, fj], cfg, T_pred=torch.stack([T, off]), focal=500.0)
     assert torch.equal(both.num_inliers, torch.cat([exact.num_inliers, res.num_inliers]))
     torch.testing.assert_close(both.T_ij, torch.cat([exact.T_ij, res.T_ij]), rtol=0, atol=1e-12)
+
+
+def test_guided_batch_with_a_second_pass_and_a_fallback_equals_per_pair_calls():
+    """One pair kept, one matched again around its pose, one redone by brute force: each as alone."""
+    g = torch.Generator().manual_seed(26)
+    T = _random_pose(g)
+    fi, fj, _, _ = _planted_features(g, 300, 100, 100, T, outlier_frac=0.3)
+    cfg = SparseConfig(guided_radius=4.0, guided_min_inliers=50)
+    off = T @ se3_exp(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=F64))
+    bad = T @ se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.1], dtype=F64))
+    preds = [T, off, bad]
+    batch = register_sparse_batch([fi] * 3, [fj] * 3, cfg, T_pred=torch.stack(preds), focal=500.0)
+    assert batch.guided.tolist() == [True, True, False]
+    for b, T_pred in enumerate(preds):
+        one = register_sparse_batch([fi], [fj], cfg, T_pred=T_pred[None], focal=500.0)
+        m = int(one.num_matches[0])
+        for name in ("num_matches", "num_filtered", "num_inliers", "success", "guided"):
+            assert getattr(batch, name)[b] == getattr(one, name)[0], name
+        torch.testing.assert_close(batch.T_ij[b], one.T_ij[0], rtol=0, atol=1e-12)
+        assert torch.equal(batch.inliers[b, :m], one.inliers[0, :m]) and not bool(batch.inliers[b, m:].any())
+        torch.testing.assert_close(batch.points_j[b, :m], one.points_j[0, :m], rtol=0, atol=0)
+        torch.testing.assert_close(batch.pixels_j[b, :m], one.pixels_j[0, :m], rtol=0, atol=0)
+        torch.testing.assert_close(batch.stats[b].S_ij, one.stats.S_ij, rtol=1e-12, atol=1e-12)
+        assert batch.stats[b].count.tolist() == one.stats.count.tolist()
 
 
 def test_guided_match_rejects_bad_arguments():

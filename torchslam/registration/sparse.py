@@ -12,8 +12,9 @@ GC-SLAM's sparse front-end (FastGO paper §IV-A1, Fig. 3):
    kept when, for at least one of ``N`` random partner matches,
    ``alpha = |1 - ||P_i^k - P_i^r|| / ||P_j^k - P_j^r|| |`` is small. Repeated for several rounds,
    each round drawing its partners among the matches the previous round kept.
-4. RANSAC over rigid motions: every hypothesis of every pair is fitted (batched weighted Kabsch)
-   and scored at once; the best per pair wins.
+4. RANSAC over rigid motions: the hypotheses of every pair are fitted (batched weighted Kabsch)
+   and scored a block at a time; the best per pair wins, and a pair stops early once the
+   adaptive bound on its inlier ratio says an all-inlier sample has been drawn (torchslam's).
 5. Huber-weighted Gauss-Newton refinement on SE(3) over the inliers, then the inliers'
    second-order statistics (:class:`~torchslam.fastgo.PairStats`) for FastGO.
 
@@ -42,7 +43,7 @@ import functools
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import numpy as np
@@ -81,6 +82,9 @@ logger = logging.getLogger(__name__)
 
 # Elements of one (B, hypotheses, M) block of RANSAC scores: bounds memory for large batches.
 _SCORE_BLOCK = 1 << 22
+# RANSAC hypotheses fitted and scored together before the adaptive stopping rule is checked
+# (SparseConfig.ransac_confidence): also the fewest hypotheses any pair tries.
+_RANSAC_BLOCK = 50
 # Bits of an ORB descriptor (the largest Hamming distance).
 _BITS_MAX = 256
 # Guided matching's grid: cells ``radius / _GUIDED_SPLIT`` wide, at most ``_GUIDED_CELLS`` along an
@@ -114,7 +118,13 @@ class SparseConfig:
         isometry_tol: a match passes a round when ``alpha < isometry_tol * z`` (``z`` in metres).
             The tolerance grows with depth because depth noise does (Kinect: ``sigma_z ~ z^2``,
             so the relative error of a distance grows like ``z``).
-        ransac_iterations: hypotheses per pair.
+        ransac_iterations: hypotheses per pair, at most.
+        ransac_confidence: adaptive stopping (torchslam's, for speed; the released code always
+            tries all ``ransac_iterations``): hypotheses are tried in blocks of 50, and a pair
+            keeps the best hypothesis found once the count tried reaches
+            ``log(1 - p) / log(1 - w^s)``, the number that draws an all-inlier sample with
+            probability ``p`` at the best hypothesis's inlier ratio ``w`` among the filtered
+            matches. 1 tries them all.
         ransac_sample: correspondences per hypothesis (at least 3).
         inlier_threshold: inlier when ``||R p_j + t - p_i|| / z`` is below this.
         min_inliers: a registration succeeds with at least this many inliers after refinement.
@@ -150,6 +160,7 @@ class SparseConfig:
     isometry_tol: float = 0.015
     ransac_iterations: int = 400
     ransac_sample: int = 4
+    ransac_confidence: float = 0.999
     inlier_threshold: float = 0.02
     min_inliers: int = 30
     refine_iterations: int = 6
@@ -164,6 +175,7 @@ class SparseConfig:
     LIMITS: ClassVar[dict[str, Limit]] = {
         "max_distance": Limit(ge=0, le=256), "isometry_rounds": NON_NEGATIVE, "isometry_partners": AT_LEAST_1,
         "isometry_tol": POSITIVE, "ransac_iterations": AT_LEAST_1, "ransac_sample": Limit(ge=3),
+        "ransac_confidence": Limit(gt=0, le=1),
         "inlier_threshold": POSITIVE, "min_inliers": NON_NEGATIVE, "refine_iterations": NON_NEGATIVE,
         "huber_delta": POSITIVE, "min_depth": POSITIVE, "max_depth": POSITIVE, "seed": Limit(),
         "guided_radius": NON_NEGATIVE, "guided_min_inliers": NON_NEGATIVE,
@@ -573,16 +585,25 @@ def _inliers_at(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, thr: float) -
     return mask & (sq < (thr * z) ** 2), r
 
 
+def _ransac_needed(best: Tensor, candidates: Tensor, sample: int, confidence: float) -> Tensor:
+    """(B,) hypotheses that find an all-inlier sample with probability ``confidence``.
+
+    The standard adaptive RANSAC bound ``log(1 - p) / log(1 - w^s)`` (Hartley and Zisserman,
+    Multiple View Geometry, Alg. 4.5) with the inlier ratio ``w`` of the best hypothesis so far:
+    0 where every candidate is an inlier, infinite where none is or where ``confidence`` is 1.
+    """
+    if confidence >= 1.0:
+        return torch.full(best.shape, float("inf"), dtype=torch.float64, device=best.device)
+    w = best.clamp_min(0).to(torch.float64) / candidates.clamp_min(1).to(torch.float64)
+    return math.log1p(-confidence) / torch.log1p(-(w**sample).clamp_max(1.0))
+
+
 def _ransac_from_samples(p_i: Tensor, p_j: Tensor, valid: Tensor, idx: Tensor, ok: Tensor, cfg: SparseConfig):
     B, M = valid.shape
     H, s = idx.shape[1], idx.shape[2]
     if M == 0:
         return _eye4(p_i, B), valid.clone()
-    g = idx.reshape(B, H * s, 1).expand(-1, -1, 3)
-    src = p_j.gather(1, g).reshape(B * H, s, 3)
-    dst = p_i.gather(1, g).reshape(B * H, s, 3)
-    T_h = umeyama_alignment(src, dst)[0].reshape(B, H, 4, 4)  # batched Kabsch, p_i = T p_j
-    R, t = T_h[..., :3, :3], T_h[..., :3, 3]
+    dev = p_i.device
     # Score against the candidates only: move them to the front and drop the columns no pair uses.
     cand = torch.argsort((~valid).to(torch.int8), dim=-1, stable=True)[:, : int(valid.sum(-1).max())]
     q_i = p_i.gather(1, cand[..., None].expand(-1, -1, 3))
@@ -592,9 +613,6 @@ def _ransac_from_samples(p_i: Tensor, p_j: Tensor, valid: Tensor, idx: Tensor, o
     # ||R p_j + t - p_i||^2 expanded into one batched product of per-hypothesis and per-match
     # features (16 each), so the (B, H, M, 3) residual vectors are never formed:
     # |p_j|^2 + |p_i|^2 + |t|^2 - 2 <R, p_i p_j^T> - 2 t.p_i + 2 (R^T t).p_j.
-    f_h = torch.cat(
-        [R.reshape(B, H, 9), t, (R.transpose(-1, -2) @ t[..., None])[..., 0], (t * t).sum(-1, keepdim=True)], -1
-    )  # (B, H, 16)
     f_m = torch.cat(
         [-2 * (q_i[..., :, None] * q_j[..., None, :]).reshape(B, Mc, 9), -2 * q_i, 2 * q_j, torch.ones_like(q_i[..., :1])],
         -1,
@@ -602,18 +620,44 @@ def _ransac_from_samples(p_i: Tensor, p_j: Tensor, valid: Tensor, idx: Tensor, o
     base = (q_i * q_i).sum(-1) + (q_j * q_j).sum(-1)  # (B, Mc)
     limit = (cfg.inlier_threshold * q_i[..., 2]) ** 2 - base  # inlier when f_h . f_m < limit
     limit = torch.where(q_valid, limit, torch.full_like(limit, -float("inf")))
-    counts = torch.empty(B, H, dtype=torch.int64, device=p_i.device)
+    num_candidates = q_valid.sum(-1)  # (B,)
+    rows = torch.arange(B, device=dev)
+    best_count = torch.full((B,), -1, dtype=torch.int64, device=dev)
+    T = _eye4(p_i, B)
+    done = torch.zeros(B, dtype=torch.bool, device=dev)
+    # Hypotheses are fitted and scored a block at a time. A pair stops taking new bests once the
+    # hypotheses so far reach the adaptive bound of its best inlier ratio (cfg.ransac_confidence),
+    # the same rule on every device; on the host the loop also ends once every pair has stopped.
+    block = min(H, _RANSAC_BLOCK) if cfg.ransac_confidence < 1.0 else H
     step = max(1, _SCORE_BLOCK // max(1, B * Mc))
-    for h0 in range(0, H, step):
-        sq = torch.bmm(f_h[:, h0 : h0 + step], f_m)  # (B, h, Mc)
-        if numpy_viewable(sq):  # NumPy counts a comparison's True entries about twice as fast
-            counts[:, h0 : h0 + step] = torch.from_numpy(np.count_nonzero(sq.numpy() < limit.numpy()[:, None, :], axis=-1))
-        else:
-            counts[:, h0 : h0 + step] = (sq < limit[:, None, :]).sum(-1)
-    good = ok[:, None] & torch.isfinite(T_h).flatten(-2).all(-1)
-    counts = torch.where(good, counts, torch.full_like(counts, -1))
-    best = counts.argmax(-1)  # first hypothesis on ties
-    T = T_h[torch.arange(B, device=p_i.device), best]
+    host = is_host(p_i)
+    for h0 in range(0, H, block):
+        h1 = min(H, h0 + block)
+        g = idx[:, h0:h1].reshape(B, (h1 - h0) * s, 1).expand(-1, -1, 3)
+        src = p_j.gather(1, g).reshape(B * (h1 - h0), s, 3)
+        dst = p_i.gather(1, g).reshape(B * (h1 - h0), s, 3)
+        T_h = umeyama_alignment(src, dst)[0].reshape(B, h1 - h0, 4, 4)  # batched Kabsch, p_i = T p_j
+        R, t = T_h[..., :3, :3], T_h[..., :3, 3]
+        f_h = torch.cat(
+            [R.reshape(B, h1 - h0, 9), t, (R.transpose(-1, -2) @ t[..., None])[..., 0], (t * t).sum(-1, keepdim=True)], -1
+        )  # (B, h, 16)
+        counts = torch.empty(B, h1 - h0, dtype=torch.int64, device=dev)
+        for c0 in range(0, h1 - h0, step):
+            sq = torch.bmm(f_h[:, c0 : c0 + step], f_m)  # (B, h, Mc)
+            if numpy_viewable(sq):  # NumPy counts a comparison's True entries about twice as fast
+                counts[:, c0 : c0 + step] = torch.from_numpy(np.count_nonzero(sq.numpy() < limit.numpy()[:, None, :], axis=-1))
+            else:
+                counts[:, c0 : c0 + step] = (sq < limit[:, None, :]).sum(-1)
+        good = ok[:, None] & torch.isfinite(T_h).flatten(-2).all(-1)
+        counts = torch.where(good, counts, torch.full_like(counts, -1))
+        top = counts.argmax(-1)  # first hypothesis of the block on ties
+        top_count = counts.gather(1, top[:, None])[:, 0]
+        better = ~done & (top_count > best_count)  # strictly: earlier blocks win ties
+        best_count = torch.where(better, top_count, best_count)
+        T = torch.where(better[:, None, None], T_h[rows, top], T)
+        done = done | (_ransac_needed(best_count, num_candidates, s, cfg.ransac_confidence) <= h1)
+        if host and h1 < H and bool(done.all()):
+            break
     T = torch.where(ok[:, None, None], T, _eye4(p_i, B))
     inliers, _ = _inliers_at(p_i, p_j, valid & ok[:, None], T, cfg.inlier_threshold)
     return T, inliers
@@ -628,10 +672,13 @@ def ransac_rigid(
 ) -> tuple[Tensor, Tensor]:
     """Estimate rigid motions by RANSAC, all pairs and hypotheses at once.
 
-    The ``B x ransac_iterations`` minimal samples (:func:`ransac_samples`) are fitted by one
-    batched Kabsch call and scored against every candidate of their pair by one batched matrix
-    product; the hypothesis with the most inliers (``||R p_j + t - p_i|| / z < inlier_threshold``)
-    wins, the first one on ties.
+    The minimal samples (:func:`ransac_samples`) are fitted by batched Kabsch calls and scored
+    against every candidate of their pair by batched matrix products, a block of 50 hypotheses
+    of every pair at a time; the hypothesis with the most inliers
+    (``||R p_j + t - p_i|| / z < inlier_threshold``) wins, the first one on ties. A pair stops
+    taking new hypotheses once the adaptive bound of ``cfg.ransac_confidence`` at its best
+    inlier ratio is reached (all ``ransac_iterations`` at confidence 1); its result depends only
+    on its own candidates.
 
     Args:
         p_i: (B, M, 3) points in frame i, metres.
@@ -1090,15 +1137,42 @@ def register_sparse_batch(
     if not bool(weak.any()):
         res.guided = torch.ones(B, dtype=torch.bool, device=dev)
         return res
+    # Only the weak pairs are matched and registered again: the others keep their guided result
+    # (a pair's result does not depend on the rest of the batch).
     redo = weak.nonzero().flatten().tolist()
-    brute = _match([fi[b] for b in redo], [fj[b] for b in redo], cfg, dev)
+    fi_redo, fj_redo = [fi[b] for b in redo], [fj[b] for b in redo]
     rows = torch.tensor(redo, device=dev)
-    index = index.clone()
-    index[rows] = -1
-    index[rows, : brute.shape[1]] = brute
-    res = _register_index(fi, fj, index, cfg, seed, pts_i, pts_j)
+    brute = _match(fi_redo, fj_redo, cfg, dev)
+    again = _register_index(fi_redo, fj_redo, brute, cfg, seed, pts_i[rows], pts_j[rows])
+    res = _put_rows(res, rows, again)
     res.guided = ~weak
     return res
+
+
+# The (B, M, ...) fields of a SparseResult, padded along M with zeros (False) past its matches.
+_PADDED_FIELDS = frozenset({"points_i", "points_j", "inliers", "weights", "pixels_j"})
+
+
+def _put_rows(res: SparseResult, rows: Tensor, sub: SparseResult) -> SparseResult:
+    """``res`` with its rows ``rows`` (R,) replaced by the R pairs of ``sub``.
+
+    The padded (B, M, ...) fields take the wider of the two paddings.
+    """
+
+    def put(a: Tensor, b: Tensor, padded: bool) -> Tensor:
+        if padded and a.shape[1] != b.shape[1]:
+            width = max(a.shape[1], b.shape[1])
+            a, b = (torch.cat([x, x.new_zeros(x.shape[0], width - x.shape[1], *x.shape[2:])], dim=1) for x in (a, b))
+        out = a.clone()
+        out[rows] = b
+        return out
+
+    stats = PairStats(**{f.name: put(getattr(res.stats, f.name), getattr(sub.stats, f.name), False) for f in fields(PairStats)})
+    values = {
+        f.name: put(getattr(res, f.name), getattr(sub, f.name), f.name in _PADDED_FIELDS)
+        for f in fields(SparseResult) if f.name not in ("stats", "guided")
+    }
+    return SparseResult(**values, stats=stats, guided=res.guided)
 
 
 def register_sparse(

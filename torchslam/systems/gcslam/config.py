@@ -44,6 +44,11 @@ class GCSlamConfig:
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
+        loop_guided: match a loop candidate's features guided by the pose graph's current
+            relative pose of the two keyframes (``sparse.guided_radius``, as tracking does;
+            torchslam's, for speed), falling back to brute-force matching where the guided
+            registration is weak (drift larger than the window, a wrong place). False: brute
+            force for every candidate, as the released code does.
         loop_iterations: iterations of the trial optimisation that tests loop candidates.
         loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
             by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
@@ -87,6 +92,7 @@ class GCSlamConfig:
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3
+    loop_guided: bool = True
     loop_iterations: int = 10
     loop_threshold: float = 0.05
     loop_slack_m: float = 0.003

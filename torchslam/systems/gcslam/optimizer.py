@@ -24,6 +24,7 @@ from torch import Tensor
 
 from ...errors import TorchSlamError
 from ...fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closures, optimize
+from ...geometry import se3_inverse
 from ...loop import MILDDatabase
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import add_stage_ms
@@ -63,9 +64,17 @@ class Optimizer:
     (FastGO's cost does not grow with images, and float64 is the back-end's precision).
     """
 
-    def __init__(self, cfg: GCSlamConfig, monitor: Monitor) -> None:
+    def __init__(self, cfg: GCSlamConfig, monitor: Monitor, focal: float | None = None) -> None:
+        """
+        Args:
+            cfg: GC-SLAM settings.
+            monitor: where the optimiser's scalars go.
+            focal: the camera's focal length in pixels, the scale of the guided loop matching
+                window (``cfg.loop_guided``); None matches loop candidates by brute force.
+        """
         self.cfg = cfg
         self.monitor = monitor
+        self.focal = focal
         self.T_wk: list[Tensor] = []
         self.pairs: list[tuple[int, int]] = []
         self.stats: list[PairStats] = []
@@ -73,6 +82,8 @@ class Optimizer:
         self.features: list[FrameFeatures] = []
         self.mild = MILDDatabase(cfg.mild)
         self.loops = {"candidates": 0, "registered": 0, "accepted": 0, "rejected": 0}
+        # Loop candidates whose guided registration was kept, and those matched by brute force.
+        self.loop_matching = {"guided": 0, "fallback": 0}
         self.stage_ms: dict[str, float] = {}
         self.fastgo_ms: list[float] = []
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed + 1)
@@ -125,12 +136,31 @@ class Optimizer:
         self.stage_ms["fastgo"] = self.stage_ms.get("fastgo", 0.0) + ms
         self.monitor.scalar("optimization/fastgo_ms", ms, frame_index)
 
+    def predicted_poses(self, kf: int, candidates: list[int]) -> Tensor | None:
+        """The pose graph's current relative poses of the candidates, the guide of their matching.
+
+        Returns:
+            (C, 4, 4) float64 ``T_ck`` with ``p_c = T_ck p_kf`` for each candidate ``c``, or None
+            where loop matching is not guided (``cfg.loop_guided`` off, no focal length, or
+            ``sparse.guided_radius`` 0).
+        """
+        if not (self.cfg.loop_guided and self.focal and self.cfg.sparse.guided_radius > 0 and candidates):
+            return None
+        T_wc = torch.stack([self.T_wk[c] for c in candidates])  # (C, 4, 4)
+        return se3_inverse(T_wc) @ self.T_wk[kf]
+
     def close_loops(self, kf: int, candidates: list[int], frame_index: int = 0) -> None:
         """Register the candidates to keyframe ``kf`` and keep the loops that pass the test of §IV-C."""
         cfg = self.cfg
         t0 = time.perf_counter()
         self.loops["candidates"] += len(candidates)
-        res = register_sparse_batch([self.features[c] for c in candidates], [self.features[kf]] * len(candidates), cfg.sparse, self.generator)
+        T_pred = self.predicted_poses(kf, candidates)
+        res = register_sparse_batch([self.features[c] for c in candidates], [self.features[kf]] * len(candidates), cfg.sparse,
+                                    self.generator, T_pred=T_pred, focal=self.focal)
+        if T_pred is not None:
+            guided = int(res.guided.sum())
+            self.loop_matching["guided"] += guided
+            self.loop_matching["fallback"] += len(candidates) - guided
         ok = [b for b in range(len(candidates)) if bool(res.success[b])]
         t0 = self._add_ms("loop_registration", t0)
         if not ok:

@@ -126,7 +126,7 @@ class GCSlam:
         self.camera: PinholeCamera = sequence.camera
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
-        self.optimizer = Optimizer(cfg, self.monitor)
+        self.optimizer = Optimizer(cfg, self.monitor, focal=self.camera.fx)
         self._worker = Worker(self.optimizer, insert_keyframe, cfg.threaded, deferred=self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
         # Prior tags: "lost" (holds the last pose), "unlinked" (an unlinked keyframe started at
@@ -407,6 +407,8 @@ class GCSlam:
             "frontend": self.cfg.frontend.value,
             "threaded": self.cfg.threaded,
             "loops": dict(opt.loops),
+            # Loop candidates registered with guided matches, and those matched by brute force.
+            "loop_matching": dict(opt.loop_matching),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
             # Accepted loop closures as (earlier, later) sequence frame indices of their keyframes.
             "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
