@@ -44,11 +44,6 @@ class GCSlamConfig:
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
-        loop_guided: match a loop candidate's features guided by the pose graph's current
-            relative pose of the two keyframes (``sparse.guided_radius``, as tracking does;
-            torchslam's, for speed), falling back to brute-force matching where the guided
-            registration is weak (drift larger than the window, a wrong place). False: brute
-            force for every candidate, as the released code does.
         loop_iterations: iterations of the trial optimisation that tests loop candidates.
         loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
             by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
@@ -58,7 +53,12 @@ class GCSlamConfig:
             would reject; a false loop moves the error by centimetres.
         final_iterations: iterations of one last FastGO run over all keyframes at the end of
             the sequence (0: keep the per-keyframe result).
-        threaded: run optimisation in a background thread (False: inline, for tests).
+        threaded: run optimisation in the background (False: inline, for tests).
+        background: where the background optimisation runs: ``"process"``, a child process
+            (on the CPU where the fork start method exists: Linux; elsewhere the thread), or
+            ``"thread"``. The optimiser's and the tracker's many small tensor operations contend
+            for Python's interpreter lock in two threads, so only a process overlaps them; the
+            results are the same.
         prepare_ahead: in ``run_sequence``, each frame's ORB features (sparse) or dense pyramid
             (dense) are computed on a thread of their own while the frames before it are tracked
             (``systems.base.AheadFrames``): the same results, overlapped with tracking where a
@@ -92,12 +92,12 @@ class GCSlamConfig:
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3
-    loop_guided: bool = True
     loop_iterations: int = 10
     loop_threshold: float = 0.05
     loop_slack_m: float = 0.003
     final_iterations: int = 10
     threaded: bool = True
+    background: str = "process"
     prepare_ahead: bool = True
     relocalize_keyframes: int = 5
     max_lost: int = 10
@@ -120,6 +120,8 @@ class GCSlamConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "frontend", parse_choice(Frontend, self.frontend, "frontend"))
+        if self.background not in ("process", "thread"):
+            raise ConfigError(f"background: expected 'process' or 'thread', got {self.background!r}")
         if self.motion_prior not in ("constant_velocity", "none"):
             raise ConfigError(f"motion_prior: expected 'constant_velocity' or 'none', got {self.motion_prior!r}")
         check_limits(self)

@@ -63,7 +63,7 @@ from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
 from .config import GCSlamConfig
 from .frontend import PreparedFrame, TrackingFrontend, frontend_class, make_frontend
-from .optimizer import Anchor, KeyframeEvent, Optimizer, Worker
+from .optimizer import Anchor, KeyframeEvent, Optimizer, ProcessWorker, Worker, make_worker
 
 __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]
 
@@ -117,7 +117,7 @@ class GCSlam:
         self.device = torch.device(device)
         self.monitor = monitor or Monitor()
         self.deferred = deferred
-        self._worker: Worker | None = None
+        self._worker: Worker | ProcessWorker | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, sequence: Sequence) -> None:
@@ -126,8 +126,8 @@ class GCSlam:
         self.camera: PinholeCamera = sequence.camera
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
-        self.optimizer = Optimizer(cfg, self.monitor, focal=self.camera.fx)
-        self._worker = Worker(self.optimizer, insert_keyframe, cfg.threaded, deferred=self.deferred)
+        self.optimizer = Optimizer(cfg, self.monitor)
+        self._worker = make_worker(self.optimizer, insert_keyframe, cfg, self.device, self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
         # Prior tags: "lost" (holds the last pose), "unlinked" (an unlinked keyframe started at
         # the last pose: a motion prior until a loop closure links it).
@@ -343,6 +343,7 @@ class GCSlam:
         With the background thread, frames of keyframes still queued are left out. Poses are at
         the depth instants (not re-sampled to colour stamps until ``finish``).
         """
+        self._refresh()
         T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
         if not T_wk:
             return None
@@ -350,6 +351,7 @@ class GCSlam:
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops and lost frames so far, for TensorBoard."""
+        self._refresh()
         loops = dict(self.optimizer.loops)
         return {
             "keyframes": float(len(self.keyframes)),
@@ -358,6 +360,17 @@ class GCSlam:
             "lost_frames": float(self.counts["lost_frames"]),
             "prior_frames": float(self.frames.n_prior()),
         }
+
+    def _background(self) -> str:
+        w = self._worker
+        if isinstance(w, ProcessWorker):
+            return "process"
+        return "deferred" if w.deferred else "thread" if w.threaded else "inline"
+
+    def _refresh(self) -> None:
+        """Bring the optimiser's poses and counters up to date (from the optimisation process)."""
+        if isinstance(self._worker, ProcessWorker):
+            self._worker.refresh()
 
     # ------------------------------------------------------------------ output
     def finish(self) -> SystemOutput:
@@ -406,9 +419,9 @@ class GCSlam:
         return {
             "frontend": self.cfg.frontend.value,
             "threaded": self.cfg.threaded,
+            # Where the optimisation ran: "process", "thread", "inline" or "deferred" (lockstep).
+            "background": self._background(),
             "loops": dict(opt.loops),
-            # Loop candidates registered with guided matches, and those matched by brute force.
-            "loop_matching": dict(opt.loop_matching),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
             # Accepted loop closures as (earlier, later) sequence frame indices of their keyframes.
             "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
