@@ -1,13 +1,14 @@
 """End-to-end frames/s of this checkout against another one, in alternating subprocesses.
 
     python scripts/bench_checkouts.py --other ../main-old [--systems nislam,gcslam-sparse,gcslam-dense]
-                                      [--sequences tum_fr1_xyz,7scenes_redkitchen] [--rounds 3]
+                                      [--sequences tum_fr1_xyz,7scenes_redkitchen] [--rounds 3] [--busy N]
 
 Each round runs every (system, sequence) once with each checkout, one after the other, each in
 a fresh process whose ``PYTHONPATH`` puts that checkout's ``torchslam`` first: the whole of
-``run_sequence`` at the defaults (the loader decoding ahead, GC-SLAM optimising in its
-background thread), as ``torchslam run`` does it, so what one checkout does on other threads is
-measured too. Alternating within a round lets drifts of the machine's speed hit both alike.
+``run_sequence`` at the defaults (the loader decoding ahead, GC-SLAM optimising in the
+background), as ``torchslam run`` does it, so what one checkout does on other threads is
+measured too. Alternating within a round lets drifts of the machine's speed hit both alike;
+``--busy N`` runs N competing busy-loop processes throughout (a machine shared with other work).
 Reports the median frames/s end to end of each checkout, their ratio, and both ATEs (which
 must agree where the change is meant to keep results). One torch thread. Results:
 ``scripts/results/bench_checkouts.json`` (``--out``).
@@ -25,7 +26,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _bench import RESULTS, ate_cm, data_root, load_average, system_by_name, write_json
+from _bench import RESULTS, ate_cm, data_root, load_average, start_load, stop_load, system_by_name, write_json
 
 HERE = Path(__file__).resolve()
 
@@ -60,6 +61,7 @@ def main() -> None:
     ap.add_argument("--sequences", default="tum_fr1_xyz,7scenes_redkitchen")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_checkouts.json")
+    ap.add_argument("--busy", type=int, default=0, help="competing busy-loop processes (one core each) during the runs")
     ap.add_argument("--worker", nargs=2, metavar=("SYSTEM", "SEQUENCE"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -67,8 +69,23 @@ def main() -> None:
         return
     if args.other is None:
         ap.error("--other is required")
+    if args.busy < 0:
+        ap.error("--busy must be 0 or more")
     trees = {"other": args.other.resolve(), "this": HERE.parents[1]}
-    print(f"load {load_average()}; other = {trees['other']}, this = {trees['this']}", flush=True)
+    print(f"load {load_average()}; other = {trees['other']}, this = {trees['this']}; busy processes {args.busy}", flush=True)
+    load = start_load(args.busy)
+    try:
+        rows = _compare(args, trees)
+    finally:
+        stop_load(load)
+    from torchslam.environment import environment_info
+
+    write_json(args.out, {"machine": environment_info(), "other": str(trees["other"]), "rounds": args.rounds, "threads": 1,
+                          "busy": args.busy, "rows": rows})
+
+
+def _compare(args, trees: dict[str, Path]) -> list[dict]:
+    """Every (system, sequence) of ``args`` with both checkouts, ``args.rounds`` alternating rounds."""
     rows = []
     for system in args.systems.split(","):
         for sequence in args.sequences.split(","):
@@ -87,10 +104,7 @@ def main() -> None:
             rows.append(row)
             print(f"{system:14s} {sequence:20s} other {med['other']:5.1f}  this {med['this']:5.1f} frames/s ({row['ratio']:.2f} x)  "
                   f"ATE {ate['other']:.3f} -> {ate['this']:.3f} cm", flush=True)
-    from torchslam.environment import environment_info
-
-    write_json(args.out, {"machine": environment_info(), "other": str(trees["other"]), "rounds": args.rounds, "threads": 1,
-                          "rows": rows})
+    return rows
 
 
 if __name__ == "__main__":
