@@ -85,6 +85,18 @@ def test_progress_reaches_the_parent_before_join():
     assert len(opt.T_wk) == 3 and opt.pairs == []
 
 
+def test_a_worker_dropped_without_join_lets_its_process_end():
+    import gc as garbage
+
+    worker = go.ProcessWorker(_optimizer(), gc.insert_keyframe)
+    worker.submit(_event(0))
+    process = worker.process
+    del worker
+    garbage.collect()
+    process.join(timeout=30)
+    assert process.exitcode == 0
+
+
 def _fail_on_second(opt, ev):
     if ev.kf == 1:
         raise ValueError("planted failure in keyframe 1")

@@ -28,6 +28,7 @@ import signal
 import threading
 import time
 import traceback
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -314,6 +315,27 @@ def _serve(conn, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEven
             pass  # the parent has gone
 
 
+def _receive(conn, process, inbox: queue.Queue) -> None:
+    """The parent's receiver thread: the child's messages into ``inbox`` until its last one."""
+    while True:
+        try:
+            msg = pickle.loads(conn.recv_bytes())
+        except (EOFError, OSError):
+            process.join(timeout=5)
+            msg = ("error", f"the process ended unexpectedly (exit code {process.exitcode})", [])
+        inbox.put(msg)
+        if msg[0] != "progress":
+            return
+
+
+def _send_end(conn) -> None:
+    """Tell the optimisation process that no keyframe follows (it answers with its final state)."""
+    try:
+        conn.send_bytes(pickle.dumps(None))
+    except OSError:
+        pass  # the child has gone; the receiver reports how
+
+
 class ProcessWorker:
     """Runs the insertion of new keyframes into an :class:`Optimizer` in a child process.
 
@@ -346,20 +368,13 @@ class ProcessWorker:
         self.process.start()
         child.close()
         self._inbox: queue.Queue = queue.Queue()
-        self._receiver = threading.Thread(target=self._receive, name="torchslam-gcslam-optimizer-inbox", daemon=True)
+        # The receiver holds no reference to this worker, so a worker dropped without join (a
+        # run that failed mid-sequence) is collected; its finaliser then lets the child finish
+        # and exit instead of waiting for keyframes for ever.
+        self._receiver = threading.Thread(target=_receive, args=(self._conn, self.process, self._inbox),
+                                          name="torchslam-gcslam-optimizer-inbox", daemon=True)
         self._receiver.start()
-
-    def _receive(self) -> None:
-        """The receiver thread: the child's messages into ``_inbox`` until its last one."""
-        while True:
-            try:
-                msg = pickle.loads(self._conn.recv_bytes())
-            except (EOFError, OSError):
-                self.process.join(timeout=5)
-                msg = ("error", f"the process ended unexpectedly (exit code {self.process.exitcode})", [])
-            self._inbox.put(msg)
-            if msg[0] != "progress":
-                return
+        self._release = weakref.finalize(self, _send_end, self._conn)
 
     def _apply(self, msg) -> None:
         kind, payload, scalars = msg
@@ -397,11 +412,9 @@ class ProcessWorker:
     def join(self) -> None:
         """Wait for the keyframes still queued, copy the child's optimiser back and end the child."""
         self.refresh()
+        self._release.detach()
         if not self._done:
-            try:
-                self._conn.send_bytes(pickle.dumps(None))
-            except OSError:
-                pass  # the child has gone; the receiver reports how
+            _send_end(self._conn)
             while not self._done:
                 self._apply(self._inbox.get())
         self._receiver.join()
