@@ -276,6 +276,12 @@ def test_ransac_adaptive_stop_tries_fewer_hypotheses_on_clean_pairs(monkeypatch)
     fitted.clear()
     ransac_rigid(p_i, p_j, valid, SparseConfig(ransac_confidence=1.0))
     assert sum(fitted) == 400
+    # A pair with too few candidates for a sample does not keep a clean one trying.
+    fitted.clear()
+    few = valid.clone()
+    few[:, 3:] = False
+    ransac_rigid(p_i.expand(2, -1, -1), p_j.expand(2, -1, -1), torch.cat([valid, few]), SparseConfig(ransac_confidence=0.999))
+    assert sum(fitted) == 2 * 50
 
 
 def test_ransac_needed_hypotheses_match_the_closed_form():

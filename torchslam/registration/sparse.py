@@ -624,7 +624,7 @@ def _ransac_from_samples(p_i: Tensor, p_j: Tensor, valid: Tensor, idx: Tensor, o
     rows = torch.arange(B, device=dev)
     best_count = torch.full((B,), -1, dtype=torch.int64, device=dev)
     T = _eye4(p_i, B)
-    done = torch.zeros(B, dtype=torch.bool, device=dev)
+    done = ~ok  # a pair without a minimal sample has nothing to try (and must not hold the others up)
     # Hypotheses are fitted and scored a block at a time. A pair stops taking new bests once the
     # hypotheses so far reach the adaptive bound of its best inlier ratio (cfg.ransac_confidence),
     # the same rule on every device; on the host the loop also ends once every pair has stopped.
