@@ -232,6 +232,14 @@ class Worker:
             except BaseException as exc:  # noqa: BLE001 - reported to the tracking thread at the next call
                 self.error = exc
 
+    @property
+    def background(self) -> str:
+        """Where the insertions run: ``"deferred"`` (lockstep), ``"thread"`` or ``"inline"``."""
+        return "deferred" if self.deferred else "thread" if self.threaded else "inline"
+
+    def refresh(self) -> None:
+        """Nothing to take: the thread and inline insertion update the optimiser in place."""
+
     def submit(self, ev: KeyframeEvent) -> None:
         """Hand over one new keyframe; raises if the background thread has failed."""
         if self.error is not None:
@@ -349,7 +357,7 @@ class ProcessWorker:
     """
 
     threaded = True
-    deferred = False
+    background = "process"
 
     def __init__(self, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEvent], None]) -> None:
         """
@@ -359,7 +367,6 @@ class ProcessWorker:
         """
         self.optimizer = optimizer
         self.error: BaseException | None = None
-        self.pending: list[KeyframeEvent] = []  # the deferred interface; always empty here
         self._done = False
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()

@@ -9,7 +9,7 @@ Two threads, as in the paper:
   average becomes a new keyframe; the correspondences of its registration become the statistics
   of the pair (previous keyframe, new keyframe). Frames keep their pose relative to their
   keyframe and are re-posed from the optimised keyframes at the end.
-* **optimisation** (a background thread, or inline with ``threaded: false``): for each new
+* **optimisation** (a background process or thread, ``background``, or inline with ``threaded: false``): for each new
   keyframe in insertion order, MILD (multi-index hashing of ORB descriptors, no trained
   vocabulary) proposes the ``top_k`` most similar earlier keyframes; they are registered to the
   new keyframe with sparse registration all at once; FastGO runs ``fastgo_iterations`` Gauss-
@@ -340,10 +340,10 @@ class GCSlam:
     def estimate_so_far(self) -> Trajectory | None:
         """The frames tracked so far, posed from the keyframes the optimiser has processed.
 
-        With the background thread, frames of keyframes still queued are left out. Poses are at
+        With background optimisation, frames of keyframes still queued are left out. Poses are at
         the depth instants (not re-sampled to colour stamps until ``finish``).
         """
-        self._refresh()
+        self._worker.refresh()  # the optimisation process's progress so far
         T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
         if not T_wk:
             return None
@@ -351,7 +351,7 @@ class GCSlam:
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops and lost frames so far, for TensorBoard."""
-        self._refresh()
+        self._worker.refresh()  # the optimisation process's progress so far
         loops = dict(self.optimizer.loops)
         return {
             "keyframes": float(len(self.keyframes)),
@@ -360,17 +360,6 @@ class GCSlam:
             "lost_frames": float(self.counts["lost_frames"]),
             "prior_frames": float(self.frames.n_prior()),
         }
-
-    def _background(self) -> str:
-        w = self._worker
-        if isinstance(w, ProcessWorker):
-            return "process"
-        return "deferred" if w.deferred else "thread" if w.threaded else "inline"
-
-    def _refresh(self) -> None:
-        """Bring the optimiser's poses and counters up to date (from the optimisation process)."""
-        if isinstance(self._worker, ProcessWorker):
-            self._worker.refresh()
 
     # ------------------------------------------------------------------ output
     def finish(self) -> SystemOutput:
@@ -420,7 +409,7 @@ class GCSlam:
             "frontend": self.cfg.frontend.value,
             "threaded": self.cfg.threaded,
             # Where the optimisation ran: "process", "thread", "inline" or "deferred" (lockstep).
-            "background": self._background(),
+            "background": self._worker.background,
             "loops": dict(opt.loops),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
             # Accepted loop closures as (earlier, later) sequence frame indices of their keyframes.
