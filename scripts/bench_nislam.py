@@ -48,6 +48,12 @@ SETTINGS = {
     "pixel_stride=2+ortho240x320": {"pixel_stride": 2, "kcc": {"ortho_height": 240, "ortho_width": 320}},
     # the learned KCC channels (issue 15), packaged weights, every other setting the default's
     "features=learned": {"kcc": {"features": "learned"}},
+    # each frame's orthographic image on its own optical axis (the paper) instead of the prediction
+    "center=axis": {"center_on_prediction": False},
+    # the loop candidates from place recognition alone (no pose-graph proximity candidate)
+    "proximity=0": {"loop": {"proximity_candidates": 0}},
+    # both of the above: the settings before frames were centred and proximity candidates added
+    "center=axis+proximity=0": {"center_on_prediction": False, "loop": {"proximity_candidates": 0}},
 }
 
 

@@ -37,13 +37,27 @@ def test_synthetic_translation_and_rotation_tracked_to_millimetres(trajectory):
 
 
 def test_synthetic_loop_closure_accepted_and_lowers_error():
-    cfg = SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL)
+    cfg = SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL)  # the lap closes before the end: a revisit
     seq = generate_sequence(cfg)
     with_loop, a_loop = _run(seq)
     without, a_none = _run(seq, loop={"enabled": False})
     loops = with_loop.output.metrics["loops"]
     assert loops["accepted"] >= 1
     assert a_loop.stats["rmse"] < a_none.stats["rmse"]
+
+
+def test_revisit_found_by_pose_graph_proximity_when_appearance_finds_none():
+    # Place recognition switched off (no score reaches min_score): only the nearest older keyframe
+    # in the pose graph is verified, and the loop it closes is accepted and lowers the error.
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    blind = {"min_score": 1e9}
+    near, a_near = _run(seq, loop={**blind, "proximity_candidates": 1})
+    none, a_none = _run(seq, loop={**blind, "proximity_candidates": 0})
+    loops = near.output.metrics["loops"]
+    assert loops["proximity_candidates"] >= 1 and loops["candidates"] == loops["proximity_candidates"]
+    assert loops["accepted"] >= 1
+    assert none.output.metrics["loops"]["candidates"] == 0
+    assert a_near.stats["rmse"] < 0.8 * a_none.stats["rmse"], (a_near.stats["rmse"], a_none.stats["rmse"])
 
 
 @pytest.mark.parametrize("attitude,limit_m", [("groundtruth", 0.03), ("simulated", 0.04)])
@@ -98,6 +112,39 @@ def test_frame_lost_against_a_fresh_keyframe_takes_the_constant_velocity_positio
     torch.testing.assert_close(p[k], pred, atol=1e-9, rtol=0)
     # The prediction is close to the truth on this smooth trajectory, so the run stays accurate.
     assert a.stats["rmse"] < 0.01
+
+
+@pytest.mark.parametrize("centred", [True, False])
+def test_frames_are_centred_on_their_predicted_translation(monkeypatch, centred):
+    import torchslam.systems.nislam.step as step
+
+    seen = []
+    real_match = step.match
+
+    def spy(requests):
+        out = real_match(requests)
+        seen.extend((r, s) for r, s in zip(requests, out[2]))
+        return out
+
+    monkeypatch.setattr(step, "match", spy)
+    seq = generate_sequence(SyntheticConfig(frames=40, trajectory="translate", seed=2, **SMALL))
+    _, a = _run(seq, loop={"enabled": False}, center_on_prediction=centred)
+    assert a.stats["rmse"] < 0.01
+    with_prediction = [(r, s) for r, s in seen if r.p_pred is not None]
+    assert len(with_prediction) >= 30
+    assert all(r.center is None for r, _ in seen if r.p_pred is None)
+    if not centred:
+        assert all(r.center is None for r, _ in seen)
+        return
+    for r, s in with_prediction:
+        # The centre is the prediction in the keyframe's attitude frame; the estimate includes it
+        # and departs from it by the prediction's error only (smooth motion: millimetres).
+        assert r.center is not None and r.center.shape == (1, 2)
+        # (the centre is taken to whole pixels: half a pixel of rounding on top)
+        assert (s.t_content[:2] - r.center[0].double()).abs().max() < 3e-3 + 0.5 * float(r.resolution[0])
+        assert s.index.abs().max() <= 1
+    # The camera moved centimetres away from its keyframes, all of it in the centres.
+    assert max(r.center.abs().max().item() for r, _ in with_prediction) > 0.02
 
 
 def test_attitude_gap_frames_are_not_tracked():

@@ -121,7 +121,7 @@ class _Planting(NISlam):
 
 
 def test_synthetic_revisit_accepts_the_true_loop_rejects_the_planted_one():
-    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL))
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))  # a revisit before the end
     for attitude in ("groundtruth", "simulated"):
         system = _Planting(config_from_dict(NISlamConfig, {"attitude": attitude}))
         result, a_loop = run_with_ate(system, seq)  # the ATE drop itself: test_nislam's loop test

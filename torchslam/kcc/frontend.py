@@ -34,12 +34,14 @@ class TrackResult:
 
     Attributes:
         t_content: (B, 3) scene-content translation ``(t_xy, t_z)`` in the keyframe attitude
-            frame, metres; the frame's camera sits at ``-t_content`` from the keyframe's.
+            frame, metres (the image centre included); the frame's camera sits at
+            ``-t_content`` from the keyframe's.
         variance: (B, 3) variances of ``t_content``, m^2.
         psr: (B,) peak-to-sidelobe ratio.
         matched_fraction: (B,) fraction of the frame's valid orthographic pixels well matched.
-        frame: the frame's orthographic images.
-        index: (B, 2) integer content shift used for depth and fusion.
+        frame: the frame's orthographic images (around the step's ``center``).
+        index: (B, 2) integer content shift of ``frame`` against the keyframe, used for depth
+            and fusion.
         depth_ok: (B,) bool, some pixels were well matched (t_z is meaningful).
         matched: (B, H, W) bool well-matched set.
         response: (B, H, W) correlation output.
@@ -150,6 +152,7 @@ def track_step(
     kf_filter: KCCFilter,
     resolution: Tensor,
     cfg: KCCConfig | KernelCorrelator,
+    center: Tensor | None = None,
 ) -> TrackResult:
     """Match frames against their keyframes (NI-SLAM Eq. (4)–(21)), batched.
 
@@ -163,6 +166,16 @@ def track_step(
         kf_filter: the correlators trained on those maps (``keyframe_filter``).
         resolution: (B,) keyframe resolutions ``r_k``, metres per pixel.
         cfg: the correlator, or its settings.
+        center: (B, 2) where the frame's orthographic image is centred, as a content translation
+            ``(t_x, t_y)`` in metres (``orthographic_project``'s ``center``), rounded to whole
+            pixels of ``resolution`` (the points then fall into the same pixels as on the
+            frame's axis, shifted); ``None``: on the frame's own optical axis (the paper).
+            Centred on a predicted translation, the frame's image window lies over the
+            keyframe's and the correlation measures only the prediction's error: the image
+            borders, which do not move with the content, pull the peak towards zero shift by
+            4–13 % of the shift (``scripts/bench_window.py``). ``t_content`` includes the
+            centre; ``index``, ``matched`` and ``frame`` are those of the centred image (what
+            fusion and the depth test need).
 
     Returns:
         TrackResult.
@@ -170,12 +183,18 @@ def track_step(
     corr = correlator_for(cfg)
     k = corr.cfg
     size = (k.ortho_height, k.ortho_width)
-    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size)
+    if center is not None:
+        # Whole pixels: the frame's points then fall into the same pixels as on its own axis,
+        # shifted, so the sub-pixel measurement does not depend on the prediction.
+        r = resolution.to(points.device, points.dtype)[:, None]
+        center = torch.round(center.to(points.device, points.dtype) / r) * r
+    fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size, center)
     x = corr.channels(fr)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
-    t = torch.cat([pred.t_xy, dz.t_z[:, None]], dim=-1)
+    t_xy = pred.t_xy if center is None else pred.t_xy + center
+    t = torch.cat([t_xy, dz.t_z[:, None]], dim=-1)
     var = torch.stack([pred.variance, pred.variance, dz.variance], dim=-1)
     return TrackResult(
         t_content=t,

@@ -78,6 +78,15 @@ class LoopConfig:
             of the matched pixels' depth differences (``kcc.depth_translation``; the variance of
             one pixel's difference, larger than that of their median).
         min_translation_sigma_m: floor of an edge's translation standard deviation, metres.
+        proximity_candidates: besides the place-recognition candidates, verify this many of the
+            keyframes nearest to a new keyframe in the pose graph (at least ``min_separation``
+            older, within ``max_rotation_deg``, in-plane offset within ``proximity_radius``), its
+            image centred on the graph's offset: a revisit is tried even where the appearance
+            score stays under ``min_score``, and more so when good tracking makes few keyframes.
+            The chi-square test decides as for any loop; 0 turns it off.
+        proximity_radius: largest in-plane graph offset of a proximity candidate, as a fraction of
+            the old keyframe's orthographic image half-height (``r_k H / 2``): the two images then
+            share most of their content.
         local_window: when a keyframe is made, also register it (as a loop candidate is verified)
             against this many keyframes before its predecessor, add the edges that pass the same
             chi-square test on the window's graph and optimise the window; 0 turns it off.
@@ -99,6 +108,8 @@ class LoopConfig:
     translation_variance_scale: float = 1.0
     depth_variance_scale: float = 1.0
     min_translation_sigma_m: float = 0.002
+    proximity_candidates: int = 1
+    proximity_radius: float = 0.5
     local_window: int = 0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
@@ -107,7 +118,7 @@ class LoopConfig:
         "chi2_quantile": Limit(gt=0, lt=1), "max_odometry_bend_m": Limit(gt=0, allow_inf=True),
         "rotation_sigma_deg": POSITIVE, "groundtruth_rotation_sigma_deg": POSITIVE, "gyro_bias_sigma": NON_NEGATIVE,
         "translation_variance_scale": POSITIVE, "depth_variance_scale": POSITIVE, "min_translation_sigma_m": POSITIVE,
-        "local_window": NON_NEGATIVE,
+        "proximity_candidates": NON_NEGATIVE, "proximity_radius": POSITIVE, "local_window": NON_NEGATIVE,
     }
 
     def __post_init__(self) -> None:
@@ -148,6 +159,13 @@ class NISlamConfig:
             prediction as its position instead of its own correlation estimate, and starts the
             next keyframe there (beyond the paper; off: only implausible jumps do): a lost
             frame's own estimate would otherwise carry its error into every later keyframe.
+        center_on_prediction: centre each frame's orthographic image on the constant-velocity
+            prediction of its translation from the keyframe instead of on its own optical axis
+            (beyond the paper; ``track_step``'s ``center``): the correlation then measures only
+            the prediction's error, and the image borders, which stay put while the content
+            moves, no longer pull the estimate towards the keyframe (a bias of 4–13 % of the
+            shift on real frame pairs, ``scripts/bench_window.py``). Frames without a prediction
+            (the first two, after a loop) and loop candidates are centred on their axis.
         grey_at_depth_time: where the depth image was taken at another instant than the colour
             image (``Frame.depth_timestamp``), sample each point's grey value where the point
             appears in the colour image after the attitude stream's rotation between the two
@@ -186,6 +204,7 @@ class NISlamConfig:
     min_valid_points: int = 1000
     max_jump_m: float = 0.1
     lost_uses_prior: bool = True
+    center_on_prediction: bool = True
     grey_at_depth_time: bool = True
     undistort: bool = True
     prepare_ahead: bool = True

@@ -130,6 +130,9 @@ class MatchRequest:
         resolution: (1,) the keyframe's resolution, metres per pixel.
         correlator: the sequence's kernel correlator.
         retried: the request is the retry of a lost match (its result is final).
+        center: (1, 2) content translation the frame's orthographic image is centred on
+            (``track_step``'s ``center``: the prediction in the keyframe's attitude frame), or
+            None: its own optical axis.
     """
 
     input: FrameInput
@@ -142,6 +145,7 @@ class MatchRequest:
     resolution: Tensor
     correlator: KernelCorrelator
     retried: bool = False
+    center: Tensor | None = None
 
     @property
     def batch_key(self) -> tuple:
@@ -227,6 +231,9 @@ def match(requests: list[MatchRequest]) -> tuple[list[TrackResult], list[KCCFilt
         for the whole group in one transfer (``summarize``).
     """
     kf_filter = stack_dataclass([r.kf_filter for r in requests])
+    center = None
+    if any(r.center is not None for r in requests):
+        center = torch.cat([r.center if r.center is not None else r.cloud.points.new_zeros(1, 2) for r in requests])
     res = track_step(
         stack_rows([r.cloud.points for r in requests]),
         stack_rows([r.cloud.grey for r in requests]),
@@ -236,6 +243,7 @@ def match(requests: list[MatchRequest]) -> tuple[list[TrackResult], list[KCCFilt
         kf_filter,
         torch.cat([r.resolution for r in requests]),
         requests[0].correlator,
+        center,
     )
     summaries = summarize(res)
     if len(requests) == 1:

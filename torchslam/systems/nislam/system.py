@@ -9,7 +9,8 @@ Per frame (NI-SLAM §4–§8), with no iterative optimisation in the front-end:
 2. the depth image becomes a point cloud, its grey values taken where the points appear in the
    colour image after the attitude's rotation between the two stamps (``sample_grey``), rotated
    into the keyframe's attitude and projected orthographically at the keyframe's resolution
-   ``r_k``;
+   ``r_k``, the image centred on the constant-velocity prediction of the frame's translation
+   (``center_on_prediction``; the paper centres it on the frame's axis);
 3. the kernel cross-correlator trained on the keyframe gives the image shift and its PSR;
    well-matched pixels give the depth shift (``kcc.track_step``); the scene content moved by
    ``t = (t_xy, t_z)`` in the keyframe attitude frame, so the camera sits at ``-t``;
@@ -17,7 +18,8 @@ Per frame (NI-SLAM §4–§8), with no iterative optimisation in the front-end:
    PSR > T_M fuses the frame into the keyframe (moving average, Eq. (23)).
 
 Keyframes are remembered by their ORB descriptors in a multi-index hash (no downloaded
-vocabulary). A new keyframe queries it; each candidate is verified by correlating the new
+vocabulary). A new keyframe queries it, and the keyframe nearest to it in the pose graph joins
+the candidates (``loop.proximity_candidates``); each candidate is verified by correlating the new
 keyframe's cloud against the candidate's fused orthographic map (PSR and a plausible relative
 transform), and an accepted loop adds an edge to the SE(3) pose graph, which is optimised
 with Levenberg-Marquardt. A loop is accepted only when the graph agrees with it: the chi-square
@@ -173,7 +175,10 @@ class NISlam:
         self.untracked: dict[str, int] = {"attitude_gap": 0, "too_few_points": 0}
         # rejected_by_chi2: the graph disagrees with the loop (statistical test);
         # rejected_by_odometry: the optional bend guard, or a non-finite optimisation.
-        self.loops = {"candidates": 0, "verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
+        self.loops = {
+            "candidates": 0, "proximity_candidates": 0, "verified": 0, "accepted": 0, "rejected_by_chi2": 0,
+            "rejected_by_odometry": 0,
+        }
         self.loop_tests: list[dict[str, float]] = []
         # Edges to the recent keyframes (``loop.local_window``).
         self.local = {"verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
@@ -344,10 +349,16 @@ class NISlam:
     def _request(self, input: FrameInput, cloud: Cloud, R_wi: Tensor, retried: bool) -> MatchRequest:
         """The match of a frame against the current keyframe, with its predicted position."""
         kf = self.keyframes[-1]
+        p_pred = self._predicted_position(input.frame.timestamp)
+        center = None
+        if p_pred is not None and self.cfg.center_on_prediction:
+            # The predicted camera position in the keyframe's attitude frame is -t_content.
+            t_pred = kf.T_wk[:3, :3].T @ (kf.T_wk[:3, 3] - p_pred)
+            center = t_pred[None, :2].to(cloud.points.device, cloud.points.dtype)
         return MatchRequest(
-            input=input, cloud=cloud, R_wi=R_wi, p_pred=self._predicted_position(input.frame.timestamp),
+            input=input, cloud=cloud, R_wi=R_wi, p_pred=p_pred,
             R_kf_frame=(kf.T_wk[:3, :3].T @ R_wi)[None], kf_map=kf.map, kf_filter=self._ensure_filter(kf),
-            resolution=kf.resolution, correlator=self.correlator, retried=retried,
+            resolution=kf.resolution, correlator=self.correlator, retried=retried, center=center,
         )
 
     def _pose(self, t_content: Tensor, R_wi: Tensor) -> Tensor:
@@ -481,11 +492,14 @@ class NISlam:
         ids, _ = self.mild.query(desc) if len(self.mild) else (torch.zeros(0, dtype=torch.int64), torch.zeros(0))
         self.mild.add(kid, desc)
         best: _LoopEdge | None = None
-        for cand in ids.tolist():
+        near = self._near_keyframes(kid)
+        for cand in ids.tolist() + [j for j in near if j not in ids.tolist()]:
             if cand > kid - cfg.loop.min_separation:
                 continue
             self.loops["candidates"] += 1
-            edge = self._verify(cand, kf)
+            if cand in near:
+                self.loops["proximity_candidates"] += 1
+            edge = self._verify(cand, kf, centred=cand in near)
             if edge is not None and (best is None or edge.psr > best.psr):
                 best = edge
         if best is None:
@@ -509,8 +523,38 @@ class NISlam:
             self.local["verified"] += 1
             self._try_loop(cand, kid, edge.T_jk, edge.variance, window=lo)
 
-    def _verify(self, cand: int, kf: _Keyframe) -> _LoopEdge | None:
-        """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map."""
+    def _near_keyframes(self, kid: int) -> list[int]:
+        """The ``loop.proximity_candidates`` keyframes nearest to keyframe ``kid`` in the pose graph.
+
+        Only keyframes at least ``loop.min_separation`` older, within ``loop.max_rotation_deg``
+        of its attitude and whose orthographic image would overlap most of it: the graph's
+        in-plane offset at most ``loop.proximity_radius`` times the old keyframe's image
+        half-height (``r_k H / 2``). Nearest first (3-D distance in the graph).
+        """
+        lc = self.cfg.loop
+        first_late = kid - lc.min_separation + 1
+        if lc.proximity_candidates == 0 or first_late <= 0:
+            return []
+        kf = self.keyframes[kid]
+        half_height = self.cfg.kcc.ortho_height / 2
+        found = []
+        for j in range(first_late):
+            old = self.keyframes[j]
+            R_j = old.T_wk[:3, :3]
+            if math.degrees(float(so3_log(R_j.T @ kf.T_wk[:3, :3]).norm())) > lc.max_rotation_deg:
+                continue
+            d = R_j.T @ (kf.T_wk[:3, 3] - old.T_wk[:3, 3])
+            if float(d[:2].norm()) <= lc.proximity_radius * float(old.resolution[0]) * half_height:
+                found.append((float(d.norm()), j))
+        return [j for _, j in sorted(found)[: lc.proximity_candidates]]
+
+    def _verify(self, cand: int, kf: _Keyframe, centred: bool = False) -> _LoopEdge | None:
+        """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map.
+
+        ``centred``: ``kf``'s orthographic image is centred on the graph's estimate of its offset
+        from the candidate (``track_step``'s ``center``), as frames are on their prediction;
+        else on its own axis (an appearance candidate, whose graph offset may be far off).
+        """
         lc = self.cfg.loop
         old = self.keyframes[cand]
         R_jk = old.T_wk[:3, :3].T @ kf.T_wk[:3, :3]
@@ -518,7 +562,12 @@ class NISlam:
             return None
         filt = self._ensure_filter(old)
         c = kf.cloud
-        res = track_step(c.points, c.grey, c.valid, R_jk[None], old.map, filt, old.resolution, self.correlator)
+        center = None
+        if centred:
+            # the new keyframe's camera sits at -t_content in the old keyframe's attitude frame
+            t_graph = old.T_wk[:3, :3].T @ (old.T_wk[:3, 3] - kf.T_wk[:3, 3])
+            center = t_graph[None, :2].to(c.points.device, c.points.dtype)
+        res = track_step(c.points, c.grey, c.valid, R_jk[None], old.map, filt, old.resolution, self.correlator, center)
         old.filter = None  # keep memory flat: old keyframes' filters are rebuilt on demand
         m = summarize(res)[0]
         if m.psr < lc.min_psr or not m.depth_ok or m.matched_fraction < lc.min_matched:
