@@ -536,17 +536,18 @@ class NISlam:
         if lc.proximity_candidates == 0 or first_late <= 0:
             return []
         kf = self.keyframes[kid]
-        half_height = self.cfg.kcc.ortho_height / 2
-        found = []
-        for j in range(first_late):
-            old = self.keyframes[j]
-            R_j = old.T_wk[:3, :3]
-            if math.degrees(float(so3_log(R_j.T @ kf.T_wk[:3, :3]).norm())) > lc.max_rotation_deg:
-                continue
-            d = R_j.T @ (kf.T_wk[:3, 3] - old.T_wk[:3, 3])
-            if float(d[:2].norm()) <= lc.proximity_radius * float(old.resolution[0]) * half_height:
-                found.append((float(d.norm()), j))
-        return [j for _, j in sorted(found)[: lc.proximity_candidates]]
+        old = self.keyframes[:first_late]
+        T = torch.stack([o.T_wk for o in old])  # (J, 4, 4) float64, host
+        r = torch.cat([o.resolution for o in old]).to("cpu", torch.float64)  # one read-back
+        R_j, p_j = T[:, :3, :3], T[:, :3, 3]
+        # angle between attitudes from the trace of R_j^T R_k; offset in each old keyframe's axes
+        cos = ((R_j * kf.T_wk[:3, :3]).sum(dim=(1, 2)) - 1.0) / 2.0
+        angle = torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+        d = torch.einsum("jab,ja->jb", R_j, kf.T_wk[:3, 3] - p_j)
+        near = (angle <= lc.max_rotation_deg) & (d[:, :2].norm(dim=1) <= lc.proximity_radius * r * self.cfg.kcc.ortho_height / 2)
+        idx = near.nonzero()[:, 0]
+        order = d[idx].norm(dim=1).argsort(stable=True)
+        return idx[order][: lc.proximity_candidates].tolist()
 
     def _verify(self, cand: int, kf: _Keyframe, centred: bool = False) -> _LoopEdge | None:
         """Correlate keyframe ``kf``'s cloud against candidate ``cand``'s fused map.
