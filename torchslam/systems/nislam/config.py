@@ -165,7 +165,8 @@ class NISlamConfig:
             the prediction's error, and the image borders, which stay put while the content
             moves, no longer pull the estimate towards the keyframe (a bias of 4–13 % of the
             shift on real frame pairs, ``scripts/bench_window.py``). Frames without a prediction
-            (the first two, after a loop) and loop candidates are centred on their axis.
+            (the first two, after a loop) and place-recognition loop candidates are centred on
+            their axis; proximity candidates (``loop.proximity_candidates``) on the graph's offset.
         grey_at_depth_time: where the depth image was taken at another instant than the colour
             image (``Frame.depth_timestamp``), sample each point's grey value where the point
             appears in the colour image after the attitude stream's rotation between the two

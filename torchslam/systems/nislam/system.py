@@ -133,6 +133,16 @@ class _LoopEdge:
     psr: float
 
 
+def _content_center(T_wk: Tensor, p_w: Tensor, like: Tensor) -> Tensor:
+    """(1, 2) ``track_step`` centre for a camera at world position ``p_w`` matched against a keyframe at ``T_wk``.
+
+    The camera sits at ``-t_content`` in the keyframe's attitude frame, so the content moved by
+    ``R_wk^T (p_k - p_w)``; its image-plane part, in ``like``'s device and dtype.
+    """
+    t = T_wk[:3, :3].T @ (T_wk[:3, 3] - p_w)
+    return t[None, :2].to(like.device, like.dtype)
+
+
 class NISlam:
     """NI-SLAM on one sequence; see the module docstring."""
 
@@ -352,9 +362,7 @@ class NISlam:
         p_pred = self._predicted_position(input.frame.timestamp)
         center = None
         if p_pred is not None and self.cfg.center_on_prediction:
-            # The predicted camera position in the keyframe's attitude frame is -t_content.
-            t_pred = kf.T_wk[:3, :3].T @ (kf.T_wk[:3, 3] - p_pred)
-            center = t_pred[None, :2].to(cloud.points.device, cloud.points.dtype)
+            center = _content_center(kf.T_wk, p_pred, cloud.points)
         return MatchRequest(
             input=input, cloud=cloud, R_wi=R_wi, p_pred=p_pred,
             R_kf_frame=(kf.T_wk[:3, :3].T @ R_wi)[None], kf_map=kf.map, kf_filter=self._ensure_filter(kf),
@@ -493,7 +501,8 @@ class NISlam:
         self.mild.add(kid, desc)
         best: _LoopEdge | None = None
         near = self._near_keyframes(kid)
-        for cand in ids.tolist() + [j for j in near if j not in ids.tolist()]:
+        found = ids.tolist()
+        for cand in found + [j for j in near if j not in found]:
             if cand > kid - cfg.loop.min_separation:
                 continue
             self.loops["candidates"] += 1
@@ -563,11 +572,7 @@ class NISlam:
             return None
         filt = self._ensure_filter(old)
         c = kf.cloud
-        center = None
-        if centred:
-            # the new keyframe's camera sits at -t_content in the old keyframe's attitude frame
-            t_graph = old.T_wk[:3, :3].T @ (old.T_wk[:3, 3] - kf.T_wk[:3, 3])
-            center = t_graph[None, :2].to(c.points.device, c.points.dtype)
+        center = _content_center(old.T_wk, kf.T_wk[:3, 3], c.points) if centred else None
         res = track_step(c.points, c.grey, c.valid, R_jk[None], old.map, filt, old.resolution, self.correlator, center)
         old.filter = None  # keep memory flat: old keyframes' filters are rebuilt on demand
         m = summarize(res)[0]
