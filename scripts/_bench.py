@@ -1,7 +1,9 @@
 """What the benchmarks in scripts/ share: device sync, repeated timing, paths, load, the tests' oracles.
 
 A benchmark imports it as ``from _bench import ...`` (a script's own folder is first on
-``sys.path``).
+``sys.path``). Importing it sets the process's C heap as ``torchslam run`` does
+(``torchslam.allocator.setup_allocator``: freed memory kept between frames, unless
+``TORCHSLAM_MALLOC=system``), so benchmarks measure what a run gets; ``ALLOCATOR`` says what it did.
 """
 
 from __future__ import annotations
@@ -20,6 +22,24 @@ from types import ModuleType
 
 import torch
 
+
+def _setup_allocator():
+    """Apply ``torchslam.allocator.setup_allocator`` and forget the torchslam modules it imported.
+
+    The C heap's setting is the process's and stays; the modules are dropped so that a benchmark
+    that imports another checkout's torchslam (``load_tree``) finds none imported yet.
+    """
+    before = set(sys.modules)
+    from torchslam.allocator import setup_allocator
+
+    setting = setup_allocator()
+    for name in set(sys.modules) - before:
+        if name == "torchslam" or name.startswith("torchslam."):
+            del sys.modules[name]
+    return setting
+
+
+ALLOCATOR = _setup_allocator()
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RESULTS = REPO_ROOT / "scripts" / "results"
 
@@ -195,3 +215,23 @@ def stop_load(procs: list[subprocess.Popen]) -> None:
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
+
+
+def add_matrix_arguments(ap, out: Path) -> None:
+    """The options of an end-to-end A/B over systems x sequences, idle and busy (``run_conditions``)."""
+    ap.add_argument("--sequences", default="tum_fr1_xyz,7scenes_redkitchen,hololens_dvmvs")
+    ap.add_argument("--systems", default="nislam,gcslam-sparse,gcslam-dense")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--busy-procs", type=int, default=1, help="competing busy-loop processes in the busy condition (0: no busy condition)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default=str(out))
+
+
+def run_conditions(busy_procs: int):
+    """Yield ``"idle"``, then ``"busy"`` with ``busy_procs`` busy loops running until the caller's next step (none: idle only)."""
+    for condition in ["idle"] + (["busy"] if busy_procs > 0 else []):
+        load = start_load(busy_procs) if condition == "busy" else []
+        try:
+            yield condition
+        finally:
+            stop_load(load)

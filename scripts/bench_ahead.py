@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from _bench import RESULTS, ate_cm, data_root, load_average, start_load, stop_load, system_by_name, write_json
+from _bench import RESULTS, add_matrix_arguments, ate_cm, data_root, load_average, run_conditions, system_by_name, write_json
 from torchslam.data.tum import TUMSequence
 from torchslam.environment import environment_info
 from torchslam.systems import run_sequence
@@ -38,40 +38,30 @@ def _run(system_name: str, sequence: str, ahead: bool) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
-    ap.add_argument("--sequences", default="tum_fr1_xyz,7scenes_redkitchen,hololens_dvmvs")
-    ap.add_argument("--systems", default="nislam,gcslam-sparse,gcslam-dense")
-    ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--busy-procs", type=int, default=1, help="competing busy-loop processes in the busy condition (0: no busy condition)")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", default=str(RESULTS / "bench_ahead.json"))
+    add_matrix_arguments(ap, RESULTS / "bench_ahead.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    conditions = ["idle"] + (["busy"] if args.busy_procs > 0 else [])
     rows = []
     print(f"threads {args.threads}, load {load_average()}, {time.strftime('%H:%M:%S')}", flush=True)
-    for condition in conditions:
-        load = start_load(args.busy_procs) if condition == "busy" else []
-        try:
-            for system_name in args.systems.split(","):
-                for sequence in args.sequences.split(","):
-                    runs = {False: [], True: []}
-                    for _ in range(args.rounds):
-                        for ahead in (False, True):
-                            runs[ahead].append(_run(system_name, sequence, ahead))
-                    same = all(torch.equal(r["T_wc"], runs[False][0]["T_wc"]) for r in runs[False] + runs[True])
-                    off = statistics.median(r["fps"] for r in runs[False])
-                    on = statistics.median(r["fps"] for r in runs[True])
-                    row = {
-                        "condition": condition, "system": system_name, "sequence": sequence, "split": SPLIT.get(sequence, ""),
-                        "fps_inline": [r["fps"] for r in runs[False]], "fps_ahead": [r["fps"] for r in runs[True]],
-                        "median_inline": off, "median_ahead": on, "ratio": on / off if off > 0 else None,
-                        "ate_cm": runs[True][0]["ate_cm"], "identical": same, "load": load_average(),
-                    }
-                    rows.append(row)
-                    print(f"{condition:5s} {system_name:14s} {sequence:20s} inline {off:5.1f}  ahead {on:5.1f} frames/s "
-                          f"({row['ratio']:.2f}x)  ATE {row['ate_cm']:.2f} cm  identical {same}", flush=True)
-        finally:
-            stop_load(load)
+    for condition in run_conditions(args.busy_procs):
+        for system_name in args.systems.split(","):
+            for sequence in args.sequences.split(","):
+                runs = {False: [], True: []}
+                for _ in range(args.rounds):
+                    for ahead in (False, True):
+                        runs[ahead].append(_run(system_name, sequence, ahead))
+                same = all(torch.equal(r["T_wc"], runs[False][0]["T_wc"]) for r in runs[False] + runs[True])
+                off = statistics.median(r["fps"] for r in runs[False])
+                on = statistics.median(r["fps"] for r in runs[True])
+                row = {
+                    "condition": condition, "system": system_name, "sequence": sequence, "split": SPLIT.get(sequence, ""),
+                    "fps_inline": [r["fps"] for r in runs[False]], "fps_ahead": [r["fps"] for r in runs[True]],
+                    "median_inline": off, "median_ahead": on, "ratio": on / off if off > 0 else None,
+                    "ate_cm": runs[True][0]["ate_cm"], "identical": same, "load": load_average(),
+                }
+                rows.append(row)
+                print(f"{condition:5s} {system_name:14s} {sequence:20s} inline {off:5.1f}  ahead {on:5.1f} frames/s "
+                      f"({row['ratio']:.2f}x)  ATE {row['ate_cm']:.2f} cm  identical {same}", flush=True)
     write_json(Path(args.out), {
         "machine": environment_info(), "threads": args.threads, "rounds": args.rounds, "busy_procs": args.busy_procs,
         "busy_load": f"{args.busy_procs} pure-Python busy loop process(es), started and stopped by the script", "rows": rows,

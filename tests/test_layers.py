@@ -26,6 +26,7 @@ LAYERS: dict[str, int] = {
     "torchslam.strictjson": 0,
     "torchslam.environment": 0,
     "torchslam.threads": 0,
+    "torchslam.allocator": 0,
     "torchslam._moved": 0,
     "torchslam.cache": 0,
     "torchslam.devices": 0,

@@ -321,9 +321,11 @@ def _cmd_calibrate_time(args) -> int:
     from .systems.nislam import NISlamConfig, attitude_stream
     from .app.run import DataConfig, load_sequence
     from .app.calibrate_time import estimate_attitude_time_offset
+    from .allocator import setup_allocator
     from .threads import setup_threads
 
     threads = setup_threads(args.threads)
+    setup_allocator()
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")
     if args.pairs < 1 or args.frame_gap < 1:

@@ -17,6 +17,7 @@ from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
 from ..data.tum import TUMSequence
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits
+from ..allocator import setup_allocator
 from ..threads import setup_threads
 from ..systems.base import check_max_frames, run_sequence
 from ..systems.monitor import Monitor, TensorBoardMonitor
@@ -182,6 +183,7 @@ def run(
     """
     check_max_frames(options.max_frames)
     threads = setup_threads(options.threads, flag_name="--threads")
+    allocator = setup_allocator()
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides, params=options.params)
     out = Path(options.out)
@@ -193,7 +195,7 @@ def run(
         on_frame = progress_callback(system, sequence, monitor, every=options.monitor_every) if options.tensorboard else None
         result = run_sequence(system, sequence, progress=progress, max_frames=options.max_frames, on_frame=on_frame)
         resolved["device"] = options.device
-        extra = {"device": options.device, "data": options.data, **threads.to_dict()}
+        extra = {"device": options.device, "data": options.data, **threads.to_dict(), **allocator.to_dict()}
         if options.params is not None:
             extra["params"] = str(options.params)
         metrics = write_run(out, options.system, result, sequence, config=resolved, extra=extra)

@@ -52,6 +52,7 @@ from ...systems.base import RunResult, check_max_frames, run_sequence
 from ...systems.lockstep import run_lockstep
 from ...systems.monitor import Monitor, TensorBoardMonitor
 from ...systems.registry import get_system
+from ...allocator import AllocatorSetting, setup_allocator
 from ...threads import ThreadSetting, setup_threads
 from ..outputs import write_run
 from ..progress import log_hparams
@@ -147,9 +148,12 @@ def _finish_sequence(
     max_frames: int | None,
     monitor: Monitor,
     threads: ThreadSetting,
+    allocator: AllocatorSetting,
 ) -> dict[str, Any]:
     """Write the run folder of one finished sequence (ground truth first, metrics.json last)."""
-    extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames, **threads.to_dict()}
+    extra: dict[str, Any] = {
+        "device": device, "data": source.spec, "max_frames": max_frames, **threads.to_dict(), **allocator.to_dict()
+    }
     # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
     # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
     groundtruth = sequence.groundtruth_raw or sequence.groundtruth
@@ -261,6 +265,7 @@ def run_batch(
     """
     _check_options(options)
     threads = setup_threads(options.threads, flag_name="--threads")
+    allocator = setup_allocator()
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
     sources = expand_sources(options.sources, data_cfg)
@@ -281,6 +286,7 @@ def run_batch(
             out=Path(options.out),
             device=f"cuda:{dist.local_rank}" if options.device == "cuda" and dist.active else options.device,
             threads=threads,
+            allocator=allocator,
         )
         lock = lock_batch_folder(plan.out, dist)
         if not options.overwrite:
@@ -309,6 +315,7 @@ class _Plan:
     out: Path
     device: str  # where tensors live in this process
     threads: ThreadSetting  # applied to this process at the start
+    allocator: AllocatorSetting  # likewise
 
     def completed(self, src: BatchSource) -> dict[str, Any] | None:
         if src.error is not None:
@@ -370,7 +377,7 @@ def _run_shard(plan: _Plan, sources: list[BatchSource], dist: Dist, on_row) -> B
             "interrupted": interrupted,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
-        result.summary_files = write_summary(plan.out, header, ordered, totals, plan.threads)
+        result.summary_files = write_summary(plan.out, header, ordered, totals, plan.threads, plan.allocator)
     return result
 
 
@@ -412,7 +419,8 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
                 continue
             try:
                 metrics = _finish_sequence(
-                    folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor, plan.threads
+                    folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor,
+                    plan.threads, plan.allocator,
                 )
             except Exception as exc:  # noqa: BLE001 -- e.g. a full disk: this sequence fails, not the batch
                 emit(src, summary_row(src, "failed", message=_write_error(folder, exc)))
