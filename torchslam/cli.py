@@ -325,7 +325,7 @@ def _cmd_calibrate_time(args) -> int:
     from .threads import setup_threads
 
     threads = setup_threads(args.threads)
-    setup_allocator()
+    allocator = setup_allocator()
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")
     if args.pairs < 1 or args.frame_gap < 1:
@@ -338,7 +338,7 @@ def _cmd_calibrate_time(args) -> int:
         max_pairs=args.pairs,
     )
     if args.json:
-        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict(), **threads.to_dict()}))
+        print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict(), **threads.to_dict(), **allocator.to_dict()}))
         return 0
     print(f"sequence          {seq.name}")
     print(f"attitude source   {stream.source}")

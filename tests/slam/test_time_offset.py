@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from torchslam.allocator import resolve_allocator
 from torchslam.cli import main
 from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
@@ -109,6 +110,7 @@ def test_cli_calibrate_time(tmp_path, capsys):
     res = json.loads(capsys.readouterr().out)
     assert res["attitude_source"] == "groundtruth" and res["pairs"] == 8
     assert (res["threads"], res["threads_source"]) == (1, "policy")
+    assert res["malloc"] == resolve_allocator()[0] and isinstance(res["malloc_applied"], bool)
     assert abs(res["offset_s"]) < 0.005
     assert main(["calibrate-time", "--data", str(out), "--attitude", "groundtruth", "--pairs", "4"]) == 0
     text = capsys.readouterr().out

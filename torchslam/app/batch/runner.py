@@ -52,8 +52,8 @@ from ...systems.base import RunResult, check_max_frames, run_sequence
 from ...systems.lockstep import run_lockstep
 from ...systems.monitor import Monitor, TensorBoardMonitor
 from ...systems.registry import get_system
-from ...allocator import AllocatorSetting, setup_allocator
-from ...threads import ThreadSetting, setup_threads
+from ...allocator import setup_allocator
+from ...threads import setup_threads
 from ..outputs import write_run
 from ..progress import log_hparams
 from ..run import DataConfig, load_sequence, resolve_config
@@ -147,13 +147,10 @@ def _finish_sequence(
     device: str,
     max_frames: int | None,
     monitor: Monitor,
-    threads: ThreadSetting,
-    allocator: AllocatorSetting,
+    process: dict[str, Any],
 ) -> dict[str, Any]:
     """Write the run folder of one finished sequence (ground truth first, metrics.json last)."""
-    extra: dict[str, Any] = {
-        "device": device, "data": source.spec, "max_frames": max_frames, **threads.to_dict(), **allocator.to_dict()
-    }
+    extra: dict[str, Any] = {"device": device, "data": source.spec, "max_frames": max_frames, **process}
     # The sequence's own ground-truth file where it has one, so that evo run on the folder's two
     # files reproduces the headline ATE; a synthetic sequence's exact poses at its frames otherwise.
     groundtruth = sequence.groundtruth_raw or sequence.groundtruth
@@ -264,8 +261,7 @@ def run_batch(
             some run folders hold a complete run of another request (before anything runs).
     """
     _check_options(options)
-    threads = setup_threads(options.threads, flag_name="--threads")
-    allocator = setup_allocator()
+    process = {**setup_threads(options.threads, flag_name="--threads").to_dict(), **setup_allocator().to_dict()}
     spec = get_system(options.system)
     system_cfg, data_cfg, resolved = resolve_config(options.system, config_path, overrides)
     sources = expand_sources(options.sources, data_cfg)
@@ -285,8 +281,7 @@ def run_batch(
             runner=runner,
             out=Path(options.out),
             device=f"cuda:{dist.local_rank}" if options.device == "cuda" and dist.active else options.device,
-            threads=threads,
-            allocator=allocator,
+            process=process,
         )
         lock = lock_batch_folder(plan.out, dist)
         if not options.overwrite:
@@ -314,8 +309,7 @@ class _Plan:
     runner: GroupRunner
     out: Path
     device: str  # where tensors live in this process
-    threads: ThreadSetting  # applied to this process at the start
-    allocator: AllocatorSetting  # likewise
+    process: dict[str, Any]  # the thread and C heap settings applied to this process at the start (their records)
 
     def completed(self, src: BatchSource) -> dict[str, Any] | None:
         if src.error is not None:
@@ -377,7 +371,7 @@ def _run_shard(plan: _Plan, sources: list[BatchSource], dist: Dist, on_row) -> B
             "interrupted": interrupted,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
-        result.summary_files = write_summary(plan.out, header, ordered, totals, plan.threads, plan.allocator)
+        result.summary_files = write_summary(plan.out, header, ordered, totals, plan.process)
     return result
 
 
@@ -419,8 +413,7 @@ def _run_one_group(plan: _Plan, group: list[BatchSource], emit: Callable[[BatchS
                 continue
             try:
                 metrics = _finish_sequence(
-                    folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor,
-                    plan.threads, plan.allocator,
+                    folder, plan.system, src, seq, result, plan.configs[src.index], o.device, o.max_frames, monitor, plan.process
                 )
             except Exception as exc:  # noqa: BLE001 -- e.g. a full disk: this sequence fails, not the batch
                 emit(src, summary_row(src, "failed", message=_write_error(folder, exc)))

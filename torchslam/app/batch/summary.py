@@ -14,8 +14,6 @@ from typing import Any
 
 from ...environment import environment_info
 from ...strictjson import dumps as strict_dumps
-from ...allocator import AllocatorSetting
-from ...threads import ThreadSetting
 from .sources import BatchSource
 
 __all__ = [
@@ -189,11 +187,12 @@ def _write_atomic(path: Path, text: str) -> None:
 
 
 def write_summary(
-    out: Path, header: dict[str, Any], rows: list[dict[str, Any]], totals: dict[str, Any], threads: ThreadSetting,
-    allocator: AllocatorSetting | None = None,
+    out: Path, header: dict[str, Any], rows: list[dict[str, Any]], totals: dict[str, Any], process: dict[str, Any]
 ) -> list[Path]:
-    """Write ``summary.json``, ``summary.csv`` (one line per sequence) and ``summary.md``."""
-    process = {**threads.to_dict(), **(allocator.to_dict() if allocator is not None else {})}
+    """Write ``summary.json``, ``summary.csv`` (one line per sequence) and ``summary.md``.
+
+    ``process``: the records of the process's thread and C heap settings, added to ``environment``.
+    """
     doc = {**header, "totals": totals, "rows": rows, "environment": {**environment_info(), **process}}
     paths = [out / "summary.json", out / "summary.csv", out / "summary.md"]
     _write_atomic(paths[0], strict_dumps(doc) + "\n")
