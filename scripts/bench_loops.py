@@ -3,9 +3,10 @@
 Three parts, each printed as a markdown table and written to ``scripts/results/bench_loops.json``:
 
 * ``nees``: the normalised estimation error of the odometry edges against ground truth (loops
-  off), per axis group, with the configured covariances and with the raw ones (scales 1, no
-  floor), and the translation scales that would make the mean NEES one: the calibration of
-  ``loop.translation_variance_scale``, ``loop.depth_variance_scale`` and the rotation model.
+  off), per axis group, with the loop test's covariances ("configured": the frames' jitter under
+  the default ``loop.acceptance_covariance``) and with the matches' raw Eq. (19) ones (scales 1,
+  no floor): the calibration of ``loop.jitter_variance_scale``, ``loop.translation_variance_scale``,
+  ``loop.depth_variance_scale`` and the rotation model.
   Tuning seeds 0-4 and held-out seeds 100-104 are reported apart.
 * ``long``: long synthetic sequences along the "loop" trajectory, which revisit their start
   once near the end (with and without depth noise), per attitude source: loops verified,
@@ -78,13 +79,13 @@ class PlantedNISlam(NISlam):
             if abs(mid - j_old) > 2:
                 trials.append(("elsewhere", mid, T_jk))
             for kind, j, T in trials:
-                saved = ([list(x) for x in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop)],
+                saved = ([list(x) for x in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_test_info, self.edges_loop)],
                          [kf.T_wk for kf in self.keyframes], self.R_corr, self._history_start, dict(self.loops))
                 accepted = super()._try_loop(j, k_new, T, variance)
                 test = self.loop_tests.pop()
                 self.planted.append({"kind": kind, "accepted": accepted, "chi2_increase": test["chi2_increase"]})
                 lists, poses, self.R_corr, self._history_start, self.loops = saved
-                self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_loop = lists
+                self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_test_info, self.edges_loop = lists
                 for kf, T_wk in zip(self.keyframes, poses):
                     kf.T_wk = T_wk
         return super()._try_loop(j_old, k_new, T_jk, variance, window)
@@ -110,7 +111,7 @@ def odometry_errors(system: NISlam, groundtruth: Trajectory) -> dict[str, torch.
     keep = ok[i] & ok[j]
     i, j = i[keep], j[keep]
     T_meas = torch.stack([system.edges_T[e] for e in odo])[keep]
-    info = torch.stack([system.edges_info[e] for e in odo])[keep]
+    info = torch.stack([system.edges_test_info[e] for e in odo])[keep]  # the loop test's covariances
     T_true = se3_inverse(T_gt[i]) @ T_gt[j]
     r = se3_log(se3_inverse(T_meas) @ T_true)  # (E, 6), translation in node j's axes
     R = T_meas[:, :3, :3]
@@ -146,36 +147,25 @@ def _synthetic(seed: int, frames: int, noise: bool, period: float, trajectory: s
 
 
 class _RecordingNISlam(NISlam):
-    """NI-SLAM that keeps each odometry edge's raw match variance and time span (for the NEES)."""
+    """NI-SLAM that keeps each odometry edge's Eq. (19) match variance (for the NEES)."""
 
     def __init__(self, cfg: NISlamConfig):
         super().__init__(cfg)
-        self.raw: list[tuple[torch.Tensor, float]] = []
+        self.raw: list[torch.Tensor] = []
         self.keyframe_times: list[float] = []
 
     def _new_keyframe(self, src, previous=None):
         self.keyframe_times.append(src.input.frame.geometry_time)
+        if previous is not None:
+            self.raw.append(src.variance)
         super()._new_keyframe(src, previous)
 
-    def _information(self, T_ij, variance, dt, loop):
-        if not loop:
-            self.raw.append((variance, dt))
-        return super()._information(T_ij, variance, dt, loop)
 
-
-def _with_information(errs: dict[str, torch.Tensor], system: NISlam, raw: list, T_meas: list, scaled: bool) -> dict:
-    """``errs`` with the variances of ``system``'s covariance model, or the raw ones (no scale, no floor)."""
+def _with_raw(errs: dict[str, torch.Tensor], raw: list) -> dict:
+    """``errs`` with the matches' Eq. (19) variances instead of the configured ones (no scale, no floor)."""
     if not raw:
         return errs
-    var_t = torch.stack([v.to(torch.float64) for v, _ in raw])
-    if scaled:
-        out = []
-        for (v, dt), T in zip(raw, T_meas):
-            info = NISlam._information(system, T, v, dt, loop=False)  # not recorded again
-            R = T[:3, :3]
-            out.append(1.0 / torch.diagonal(R @ info[:3, :3] @ R.T))
-        var_t = torch.stack(out)
-    return {**errs, "var_t": var_t}
+    return {**errs, "var_t": torch.stack([v.to(torch.float64) for v in raw])}
 
 
 def nees(
@@ -213,8 +203,8 @@ def nees(
                 errs = odometry_errors(system, gt)
                 if len(system.raw) != len(errs["e_t"]):
                     raise RuntimeError(f"{name}: an odometry edge without ground truth: the NEES needs every keyframe's")
-                for cov, scaled in (("configured", True), ("raw", False)):
-                    per[cov].append(_with_information(errs, system, list(system.raw), system.edges_T, scaled))
+                per["configured"].append(errs)  # the system's own edge covariances
+                per["raw"].append(_with_raw(errs, list(system.raw)))
                 by_sequence[name] = per["configured"][-1]
             if not quick:
                 for name, errs in by_sequence.items():
@@ -232,20 +222,25 @@ def nees(
 
 
 def long_runs(
-    quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True)
+    quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True),
+    overrides: dict | None = None, seed: int = 0,
 ) -> list[dict]:
-    """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule."""
+    """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule.
+
+    ``overrides``: loop settings applied under every rule's own (``--loop``); ``seed``: the
+    synthetic sequence's (``--long-seed``; 0 is a tuning seed, 100-104 are held out).
+    """
     frames = 150 if quick else 1500
     # One lap that takes 90 % of the sequence: the last tenth revisits the start.
     period = frames / 30.0 * 0.9
     rows = []
     for noise in noises:
-        seq = _synthetic(0, frames, noise, period)
+        seq = _synthetic(seed, frames, noise, period)
         for att in attitudes:
             for rule, loop in RULES.items():
                 if rule not in rules:
                     continue
-                system = PlantedNISlam(config_from_dict(NISlamConfig, {"attitude": att, "loop": loop}), false_offsets)
+                system = PlantedNISlam(config_from_dict(NISlamConfig, {"attitude": att, "loop": {**(overrides or {}), **loop}}), false_offsets)
                 t0 = time.perf_counter()
                 res = run_sequence(system, seq)
                 wall = time.perf_counter() - t0
@@ -254,7 +249,7 @@ def long_runs(
                 loops = out.metrics["loops"]
                 planted = system.planted
                 row = {
-                    "frames": frames, "depth_noise": noise, "attitude": att, "rule": rule,
+                    "frames": frames, "seed": seed, "depth_noise": noise, "attitude": att, "rule": rule,
                     "keyframes": len(out.keyframe_indices), "ate_rmse_m": a.stats["rmse"], **{f"loops_{k}": v for k, v in loops.items()},
                     "planted_false": len(planted), "planted_false_accepted": sum(p["accepted"] for p in planted),
                     "planted_accepted_by_kind": {k: sum(p["accepted"] for p in planted if p["kind"] == k) for k in sorted({p["kind"] for p in planted})},
@@ -321,10 +316,10 @@ def markdown(result: dict) -> str:
                          f"{r['rms_sigma_z_mm']:.2f} | {r['rms_error_rot_deg']:.3f} |")
         lines.append("")
     if result.get("long"):
-        lines += ["| frames | depth noise | attitude | rule | ATE (cm) | verified | accepted | rejected χ² | rejected bend | planted false accepted |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+        lines += ["| seed | frames | depth noise | attitude | rule | ATE (cm) | verified | accepted | rejected χ² | rejected bend | planted false accepted |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in result["long"]:
-            lines.append(f"| {r['frames']} | {r['depth_noise']} | {r['attitude']} | {r['rule']} | {100 * r['ate_rmse_m']:.2f} | "
+            lines.append(f"| {r.get('seed', 0)} | {r['frames']} | {r['depth_noise']} | {r['attitude']} | {r['rule']} | {100 * r['ate_rmse_m']:.2f} | "
                          f"{r['loops_verified']} | {r['loops_accepted']} | {r['loops_rejected_by_chi2']} | "
                          f"{r['loops_rejected_by_odometry']} | {r['planted_false_accepted']}/{r['planted_false']} "
                          f"({', '.join(f'{k}: {v}' for k, v in r['planted_accepted_by_kind'].items())}) |")
@@ -356,6 +351,7 @@ def main() -> None:
     ap.add_argument("--dump-nees", default=None, help="save the per-edge errors and variances under this path prefix (torch.save)")
     ap.add_argument("--rules", default="chi2,old-bend,no-loops", help="acceptance rules of the long runs (comma-separated)")
     ap.add_argument("--depth-noise", default="off,on", help="depth noise of the long runs: off, on or both (comma-separated)")
+    ap.add_argument("--long-seed", type=int, default=0, help="seed of the long runs' synthetic sequence (100-104: held out)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the parts of earlier runs (each a JSON this script wrote) into --out and print their tables")
@@ -378,7 +374,7 @@ def main() -> None:
                               tuple(args.nees_splits.split(",")), tuple(args.nees_kinds.split(",")), tuple(args.nees_attitudes.split(",")))
     if args.only in (None, "long"):
         result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
-                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")))
+                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed)
     if args.only in (None, "window"):
         result["window_size"] = args.window
         result["window"] = window(args.quick, args.window)

@@ -9,7 +9,7 @@ from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
 from torchslam.geometry import se3_exp, se3_inverse
-from torchslam.systems.nislam import LoopConfig, NISlam, NISlamConfig
+from torchslam.systems.nislam import AcceptanceCovariance, LoopConfig, NISlam, NISlamConfig
 from torchslam.systems.nislam.system import _Keyframe
 
 from tests._helpers import run_with_ate, seeded
@@ -20,13 +20,16 @@ SMALL = dict(width=320, height=240)
 def _planted_chain(attitude: str, loop: dict, n: int = 40, seed: int = 2):
     """A started NI-SLAM whose graph is a drifting chain of ``n`` keyframes 0.5 s apart.
 
+    The edges carry their true covariances, so the loop test takes them as they are
+    (``acceptance_covariance`` "eq19" unless ``loop`` says otherwise).
+
     The odometry errors are drawn from each edge's covariance: 3 mm per axis, except one weak
     edge halfway (8 cm across the image plane: a weak correlation peak, as on a textureless
     wall), where the drift concentrates; the rotations' from the system's attitude model.
     Returns the system and the true keyframe poses (n, 4, 4).
     """
     seq = generate_sequence(SyntheticConfig(frames=3, trajectory="loop", **SMALL))
-    system = NISlam(config_from_dict(NISlamConfig, {"attitude": attitude, "loop": loop}))
+    system = NISlam(config_from_dict(NISlamConfig, {"attitude": attitude, "loop": {"acceptance_covariance": "eq19", **loop}}))
     system.start(seq)
     g = seeded(seed)
     th = torch.linspace(0, 2 * math.pi * (n - 1) / n, n, dtype=torch.float64)
@@ -97,6 +100,9 @@ def test_rotation_variance_per_attitude_source():
     dt = 2.0
     expected = math.radians(lc.rotation_sigma_deg) ** 2 + (lc.gyro_bias_sigma * dt) ** 2 + c.sim_gyro_noise**2 * dt + c.sim_bias_walk**2 * dt**3 / 3
     assert sim._rotation_variance(dt) == pytest.approx(expected)
+    # The drift stops growing at max_drift_deg (the attitude filter bounds it).
+    cap = math.radians(lc.rotation_sigma_deg) ** 2 + math.radians(lc.max_drift_deg) ** 2
+    assert sim._rotation_variance(60.0) == pytest.approx(cap) and sim._rotation_variance(600.0) == pytest.approx(cap)
 
 
 def test_loop_keys_are_validated():
@@ -148,3 +154,112 @@ def test_local_window_edge_moves_only_the_window():
     wrong[:3, 3] += torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64)
     assert not system._try_loop(n - 4, n - 1, wrong, sharp, window=lo)
     assert system.local["rejected_by_chi2"] == 1
+
+
+def _frame(index: int, dt: float = 1 / 30):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(index=index, timestamp=index * dt, geometry_time=index * dt)
+
+
+def test_jitter_variance_recovers_planted_position_noise():
+    """The odometry variance from the frames' jitter: a planted white noise on a smooth path."""
+    system, _ = _planted_chain("simulated", {}, n=3)
+    g = seeded(5)
+    sigma = torch.tensor([0.001, 0.002, 0.0005], dtype=torch.float64)
+    log = system.frames
+    for m in range(40):  # an earlier keyframe's frames, far noisier: not counted
+        log.record(_frame(m), 0, se3_exp(torch.cat([0.05 * torch.randn(3, generator=g, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)])))
+    n = 600
+    t = torch.arange(n, dtype=torch.float64) / 30
+    path = torch.stack([0.1 * t, 0.02 * t**2, -0.05 * t], dim=1)  # 0.04 m/s^2: 0.04 mm per second difference
+    for m in range(n):
+        xi = torch.cat([path[m] + sigma * torch.randn(3, generator=g, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)])
+        log.record(_frame(40 + m), 1, se3_exp(xi))
+        if m == n // 2:  # a motion prior far off the path: not a measurement
+            log.record(_frame(40 + m), 1, se3_exp(torch.tensor([5.0, 5.0, 5.0, 0.0, 0.0, 0.0], dtype=torch.float64)), "velocity")
+    var = system._jitter_variance(1)
+    assert torch.allclose(var, system.cfg.loop.jitter_variance_scale * sigma**2, rtol=0.25)
+    # Too few frames: no estimate (the edge falls back to Eq. (19)).
+    for m in range(system.cfg.loop.min_jitter_frames - 1):
+        log.record(_frame(1000 + m), 2, se3_exp(torch.zeros(6, dtype=torch.float64)))
+    assert system._jitter_variance(2) is None
+
+
+def test_information_takes_a_calibrated_variance_unscaled():
+    system, _ = _planted_chain("groundtruth", {"translation_variance_scale": 4.0, "depth_variance_scale": 9.0}, n=3)
+    var = torch.tensor([1e-4, 4e-4, 9e-6], dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    scaled = torch.diagonal(system._information(eye, var, 0.5, 0.0, loop=False))[:3]
+    raw = torch.diagonal(system._information(eye, var, 0.5, 0.0, loop=False, scaled=False))[:3]
+    assert torch.allclose(raw, 1.0 / var)
+    assert torch.allclose(scaled, 1.0 / (var * torch.tensor([4.0, 4.0, 9.0], dtype=torch.float64)))
+
+
+@pytest.mark.parametrize("attitude", ["groundtruth", "simulated"])
+def test_information_adds_the_attitude_shift_at_the_scene_depth(attitude):
+    """The attitude's error over the edge's span shifts the image-plane content by depth x angle."""
+    system, _ = _planted_chain(attitude, {}, n=3)
+    var = torch.tensor([1e-4, 4e-4, 9e-6], dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    for span, loop in ((0.5, False), (40.0, True)):
+        info = torch.diagonal(system._information(eye, var, span, 2.5, loop=loop, scaled=False))[:3]
+        shift = 2.5**2 * system._rotation_variance(span)
+        assert torch.allclose(1.0 / info, var + torch.tensor([shift, shift, 0.0], dtype=torch.float64))
+    # an inertial attitude drifts over a loop's span; ground truth does not
+    assert (system._rotation_variance(40.0) > 10 * system._rotation_variance(0.5)) == (attitude == "simulated")
+
+
+def test_jitter_acceptance_changes_the_test_not_the_optimisation():
+    seq = generate_sequence(SyntheticConfig(frames=60, fps=10.0, trajectory="orbit", seed=1, **SMALL))
+    runs = {}
+    for source in ("eq19", "jitter"):
+        system = NISlam(config_from_dict(NISlamConfig, {"attitude": "groundtruth", "loop": {"acceptance_covariance": source}}))
+        result, _ = run_with_ate(system, seq)
+        runs[source] = (system, result.output)
+    (eq, out_eq), (jit, out_jit) = runs["eq19"], runs["jitter"]
+    odometry = sum(not loop for loop in jit.edges_loop)
+    assert odometry >= 2 and out_jit.metrics["odometry_variances"]["jitter"] >= 1
+    assert out_eq.metrics["odometry_variances"] == {"jitter": 0, "eq19": odometry}
+    assert sum(out_jit.metrics["odometry_variances"].values()) == odometry
+    # the same graph to optimise; only the test's covariances differ
+    assert torch.equal(torch.stack(eq.edges_info), torch.stack(jit.edges_info))
+    assert torch.equal(torch.stack(eq.edges_test_info), torch.stack(eq.edges_info))
+    assert not torch.allclose(torch.stack(jit.edges_test_info), torch.stack(jit.edges_info))
+    assert torch.equal(out_eq.T_wc, out_jit.T_wc)
+
+
+@pytest.mark.parametrize("attitude", ["groundtruth", "simulated"])
+def test_jitter_acceptance_optimises_an_accepted_loop_with_the_papers_covariances(attitude):
+    """The default test ("jitter") accepts the chain's true loop and rejects a 1 m offset and a
+    different place; the accepted loop is optimised as under the paper's covariances."""
+    eq, T_gt = _planted_chain(attitude, {})
+    jit, _ = _planted_chain(attitude, {"acceptance_covariance": "jitter"})
+    assert NISlamConfig().loop.acceptance_covariance is AcceptanceCovariance.JITTER  # the default
+    n = len(T_gt)
+    T_loop = se3_inverse(T_gt[0]) @ T_gt[-1]
+    sharp = torch.tensor([1e-4, 1e-4, 4e-5], dtype=torch.float64)
+    assert eq._try_loop(0, n - 1, T_loop, sharp) and jit._try_loop(0, n - 1, T_loop, sharp)
+    # the loop's test information allows for the chain's common drift (1 % of its path)
+    path = sum(float((jit.keyframes[k + 1].T_wk[:3, 3] - jit.keyframes[k].T_wk[:3, 3]).norm()) for k in range(n - 1))
+    assert jit._drift_variance(0, n - 1) == pytest.approx((0.01 * path) ** 2, rel=0.05)
+    assert 1.0 / float(jit.edges_test_info[-1][0, 0]) > 1.0 / float(jit.edges_info[-1][0, 0]) + 0.5 * (0.01 * path) ** 2
+    assert torch.equal(jit.edges_info[-1], eq.edges_info[-1])
+    poses = lambda s: torch.stack([kf.T_wk for kf in s.keyframes])  # noqa: E731
+    assert torch.allclose(poses(jit), poses(eq), atol=1e-6)
+    for j, offset in ((0, 1.0), (n // 2, 0.0)):
+        wrong, _ = _planted_chain(attitude, {"acceptance_covariance": "jitter"})
+        T = (se3_inverse(T_gt[0]) @ T_gt[-1]).clone()
+        T[:3, 3] += torch.tensor([offset, 0.0, 0.0], dtype=torch.float64)
+        assert not wrong._try_loop(j, n - 1, T, sharp) and wrong.loops["rejected_by_chi2"] == 1
+
+
+def test_acceptance_covariance_keys_are_validated():
+    with pytest.raises(ConfigError, match="acceptance_covariance"):
+        LoopConfig(acceptance_covariance="widest")
+    with pytest.raises(ConfigError, match="drift_per_metre"):
+        LoopConfig(drift_per_metre=-0.01)
+    with pytest.raises(ConfigError, match="min_jitter_frames"):
+        LoopConfig(min_jitter_frames=2)
+    with pytest.raises(ConfigError, match="jitter_variance_scale"):
+        LoopConfig(jitter_variance_scale=0.0)

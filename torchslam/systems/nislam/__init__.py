@@ -8,12 +8,12 @@ fusion / lost rule), ``step`` (the per-frame phases the lockstep scheduler drive
 from ...kcc import TrackResult, track_step
 from ..base import StepReport
 from .attitude import attitude_stream
-from .config import AttitudeSource, Gravity, LoopConfig, NISlamConfig
+from .config import AcceptanceCovariance, AttitudeSource, Gravity, LoopConfig, NISlamConfig
 from .policy import KeyframePolicy
 from .step import track_frames
 from .system import SPEC, NISlam
 
 __all__ = [
-    "SPEC", "AttitudeSource", "Gravity", "KeyframePolicy", "LoopConfig", "NISlam", "NISlamConfig", "StepReport",
+    "SPEC", "AcceptanceCovariance", "AttitudeSource", "Gravity", "KeyframePolicy", "LoopConfig", "NISlam", "NISlamConfig", "StepReport",
     "TrackResult", "attitude_stream", "track_frames", "track_step",
 ]

@@ -11,7 +11,7 @@ from ...errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, Limit, check
 from ...imu import ImuNoise
 from ...kcc import KCCConfig
 
-__all__ = ["AttitudeSource", "Gravity", "LoopConfig", "NISlamConfig"]
+__all__ = ["AttitudeSource", "Gravity", "LoopConfig", "NISlamConfig", "AcceptanceCovariance"]
 
 
 class AttitudeSource(str, enum.Enum):
@@ -33,6 +33,13 @@ class Gravity(str, enum.Enum):
     NEG_Y = "-y"
     Z = "z"
     NEG_Z = "-z"
+
+
+class AcceptanceCovariance(str, enum.Enum):
+    """The edge covariances NI-SLAM's loop test uses (``LoopConfig.acceptance_covariance``)."""
+
+    JITTER = "jitter"
+    EQ19 = "eq19"
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,34 @@ class LoopConfig:
             variance of an odometry edge whose keyframes are ``dt`` apart grows by
             ``(gyro_bias_sigma dt)^2 + sim_gyro_noise^2 dt + sim_bias_walk^2 dt^3 / 3`` (the yaw
             drift of a gyro without magnetometer; white noise and bias walk from the attitude
-            noise settings).
+            noise settings), up to ``max_drift_deg``.
+        max_drift_deg: the drift's standard deviation stops growing at this, degrees: the
+            attitude filter's accelerometer correction bounds it as the camera turns (simulated
+            attitude on the tuning seeds 0-4, 1,500 frames: RMS error per axis of the relative
+            rotation 0.10° over 4 s, 0.32° over 15 s, 0.40° over 30 s, 0.37° over 45 s, where the
+            unbounded model says 0.15°, 0.44°, 0.88°, 1.31°).
+        acceptance_covariance: the edge covariances of the loop test (the pose graph is always
+            optimised with the paper's, below). "eq19" (the default): the optimisation's own.
+            "jitter" (beyond the paper): an odometry edge's translation variance is
+            ``jitter_variance_scale`` times the jitter of the frames tracked against its first
+            keyframe, per axis of its frame (the mean square of their positions' second
+            differences over 6, the variance of white noise on the positions; consecutive matches
+            share most of their error, so the edge errs by several times the jitter), or, with
+            fewer than ``min_jitter_frames`` tracked frames, the paper's; every edge's x, y
+            variance also carries the attitude's error over its span times the scene's median
+            depth (``NISlam._information``); and a loop edge allows for a drift common to the
+            odometry edges (``drift_per_metre``). Eq. (19) is the spread of the whole correlation
+            response, widest at the keyframe rule's last match, and says nothing of that match's
+            error (``scripts/bench_loops.py --only nees``; README, NI-SLAM loop acceptance).
+        jitter_variance_scale: the square of how many times the frames' jitter an odometry
+            edge errs by (calibrated by the normalised estimation error of odometry edges).
+        min_jitter_frames: fewest tracked frames against a keyframe for the "jitter" variance.
+        drift_per_metre: with "jitter", the loop test allows for a drift common to the odometry
+            edges of ``drift_per_metre`` times the path along the keyframe chain between the
+            loop's keyframes (standard deviation per axis), which independent edge covariances
+            cannot carry. (Summed odometry edge errors of the
+            tuning sequences, loops off: 0.2-0.8 % of the path on the synthetic ones with
+            ground-truth attitude, 0.4-1.3 % with simulated attitude, 1.7-2.5 % on 7-Scenes.)
         translation_variance_scale: an edge's image-plane (x, y) translation variance is this
             times the correlation's Eq. (19) variance (calibrated by the normalised estimation
             error of odometry edges against ground truth, ``scripts/bench_loops.py --nees``).
@@ -105,6 +139,11 @@ class LoopConfig:
     rotation_sigma_deg: float = 0.09
     groundtruth_rotation_sigma_deg: float = 0.01
     gyro_bias_sigma: float = ImuNoise.gyro_bias_init
+    max_drift_deg: float = 0.5
+    acceptance_covariance: AcceptanceCovariance = AcceptanceCovariance.JITTER
+    jitter_variance_scale: float = 100.0
+    min_jitter_frames: int = 5
+    drift_per_metre: float = 0.01
     translation_variance_scale: float = 1.0
     depth_variance_scale: float = 1.0
     min_translation_sigma_m: float = 0.002
@@ -116,13 +155,15 @@ class LoopConfig:
         "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
         "min_psr": NON_NEGATIVE, "min_matched": FRACTION, "max_rotation_deg": Limit(ge=0, le=180),
         "chi2_quantile": Limit(gt=0, lt=1), "max_odometry_bend_m": Limit(gt=0, allow_inf=True),
-        "rotation_sigma_deg": POSITIVE, "groundtruth_rotation_sigma_deg": POSITIVE, "gyro_bias_sigma": NON_NEGATIVE,
+        "rotation_sigma_deg": POSITIVE, "groundtruth_rotation_sigma_deg": POSITIVE, "gyro_bias_sigma": NON_NEGATIVE, "max_drift_deg": Limit(ge=0, allow_inf=True),
         "translation_variance_scale": POSITIVE, "depth_variance_scale": POSITIVE, "min_translation_sigma_m": POSITIVE,
+        "jitter_variance_scale": POSITIVE, "min_jitter_frames": Limit(ge=3), "drift_per_metre": NON_NEGATIVE,
         "proximity_candidates": NON_NEGATIVE, "proximity_radius": POSITIVE, "local_window": NON_NEGATIVE,
     }
 
     def __post_init__(self) -> None:
         check_limits(self)
+        object.__setattr__(self, "acceptance_covariance", parse_choice(AcceptanceCovariance, self.acceptance_covariance, "acceptance_covariance"))
 
 
 @dataclass(frozen=True)

@@ -23,9 +23,11 @@ the candidates (``loop.proximity_candidates``); each candidate is verified by co
 keyframe's cloud against the candidate's fused orthographic map (PSR and a plausible relative
 transform), and an accepted loop adds an edge to the SE(3) pose graph, which is optimised
 with Levenberg-Marquardt. A loop is accepted only when the graph agrees with it: the chi-square
-increase of the optimised graph it causes, with the edges' covariances (the correlation's Eq. (19)
-variance and the depth variance for translation; the attitude source's error, growing with the
-time between keyframes, for rotation), stays within a chi-square quantile
+increase of the optimised graph it causes, with the edges' covariances (translation: the
+correlation's Eq. (19) variance and the depth variance; rotation: the attitude source's error,
+growing with the time between keyframes; with ``loop.acceptance_covariance`` "jitter" the test
+takes odometry covariances from the jitter of the frames tracked against each keyframe instead,
+and the graph is still optimised with the paper's), stays within a chi-square quantile
 (``backend.edge_consistency``); otherwise it is rolled back (the paper's false relocalisation
 check, §9.2, as a statistical test). An optional extra guard rejects a loop whose optimised graph
 bends an odometry edge by more than a distance (``loop.max_odometry_bend_m``, off by default).
@@ -56,7 +58,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...backend import edge_consistency, edge_residuals
+from ...backend import edge_consistency, edge_residuals, optimize_pose_graph
 from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...features import ORBConfig, extract_orb
@@ -83,13 +85,17 @@ from ..memory import NISLAM_BYTES_PER_ORTHO_PIXEL
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
 from .attitude import attitude_stream
-from .config import NISlamConfig
+from .config import AcceptanceCovariance, NISlamConfig
 from .policy import Action, KeyframePolicy
 from .step import CameraRig, Cloud, FrameInput, MatchRequest, backproject, track_frames
 
 __all__ = ["CPU_BATCH_PIXELS", "SPEC", "NISlam"]
 
 logger = logging.getLogger(__name__)
+
+# Every n-th valid point of a new keyframe's cloud gives its median depth (the attitude's share in
+# ``_information``).
+_DEPTH_SAMPLE_STEP = 16
 
 
 @dataclass
@@ -104,6 +110,7 @@ class _Keyframe:
     cloud: Cloud | None  # cloud for loop verification (dropped after use)
     colour: Tensor | None = None  # (3, H, W) uint8 orthographic colour image at creation, on the CPU (map.ply)
     colour_valid: Tensor | None = None  # (H, W) bool, the pixels ``colour`` holds
+    depth: float = 0.0  # median depth of its cloud, metres (``_information``'s attitude term)
 
 
 @dataclass(frozen=True)
@@ -179,7 +186,8 @@ class NISlam:
         self.edges_i: list[int] = []
         self.edges_j: list[int] = []
         self.edges_T: list[Tensor] = []
-        self.edges_info: list[Tensor] = []
+        self.edges_info: list[Tensor] = []  # the optimisation's (the paper's covariances)
+        self.edges_test_info: list[Tensor] = []  # the loop test's (``loop.acceptance_covariance``)
         self.edges_loop: list[bool] = []
         self.psr: list[float] = []
         self.untracked: dict[str, int] = {"attitude_gap": 0, "too_few_points": 0}
@@ -192,6 +200,9 @@ class NISlam:
         self.loop_tests: list[dict[str, float]] = []
         # Edges to the recent keyframes (``loop.local_window``).
         self.local = {"verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
+        # Odometry edges by the source of their translation variance in the loop test
+        # (``loop.acceptance_covariance``).
+        self.odometry_variances = {"jitter": 0, "eq19": 0}
         self.fused = 0
         self.stage_ms: dict[str, float] = {}
         self.mild = MILDDatabase(MILDConfig(top_k=cfg.loop.top_k, exclude_recent=cfg.loop.min_separation, min_score=cfg.loop.min_score))
@@ -422,6 +433,8 @@ class NISlam:
         n = points.shape[1]
         ortho = orthographic_project(points, grey, valid, None, r, size, colour=rgb.reshape(1, 3, n))
         kf = _Keyframe(frame.index, frame.timestamp, T_wi, src.input.R_att[0], r, keyframe_map(ortho), None, src.cloud)
+        z = points[0, :, 2][valid[0]][::_DEPTH_SAMPLE_STEP]
+        kf.depth = float(z.median()) if len(z) else 0.0
         kf.colour = (ortho.colour[0].clamp(0, 1) * 255).round().to(torch.uint8).cpu()
         kf.colour_valid = ortho.valid[0].cpu()
         if previous is not None:
@@ -434,7 +447,16 @@ class NISlam:
         if previous is not None:
             dt = kf.timestamp - previous.timestamp
             T_ij = se3_inverse(previous.T_wk) @ T_wi
-            self._add_edge(kid - 1, kid, T_ij, self._information(T_ij, src.variance, dt, loop=False))
+            info = self._information(T_ij, src.variance, dt, 0.0, loop=False)
+            jitter = self._jitter_variance(kid - 1) if self._jitter_test else None
+            self.odometry_variances["jitter" if jitter is not None else "eq19"] += 1
+            if jitter is not None:
+                test_info = self._information(T_ij, jitter, dt, kf.depth, loop=False, scaled=False)
+            elif self._jitter_test:
+                test_info = self._information(T_ij, src.variance, dt, kf.depth, loop=False)
+            else:
+                test_info = info
+            self._add_edge(kid - 1, kid, T_ij, info, test_info)
         t0 = self._toc("keyframe", t0)
         self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
         if cfg.monitor_images_every and kid % cfg.monitor_images_every == 0:
@@ -447,15 +469,66 @@ class NISlam:
             self._toc("loop", t0)
         kf.cloud = None
 
-    def _information(self, T_ij: Tensor, variance: Tensor | None, dt: float, loop: bool) -> Tensor:
-        """(6, 6) information of edge ``T_ij`` (4, 4) from its match's translation variance (3,) m^2.
+    @property
+    def _jitter_test(self) -> bool:
+        """Whether the loop test takes the jitter covariances (``loop.acceptance_covariance``)."""
+        return self.cfg.loop.acceptance_covariance is AcceptanceCovariance.JITTER
+
+    def _drift_variance(self, j: int, k: int) -> float:
+        """Variance per axis of the odometry's common drift between keyframes ``j`` and ``k``, m^2.
+
+        ``(loop.drift_per_metre L)^2``, ``L`` the path along the keyframe chain between them (the
+        graph's current poses); 0 unless ``loop.acceptance_covariance`` is "jitter". The jitter
+        covariances of the odometry edges are independent, so over a chain they grow with the
+        square root of its length, while a drift common to the edges (a scale error, a slow turn)
+        grows with the length itself. The loop test allows for it (``_try_loop``); the graph is
+        then optimised without it, since it is not the loop's error.
+        """
+        lc = self.cfg.loop
+        lo, hi = min(j, k), max(j, k)
+        if not self._jitter_test or lc.drift_per_metre == 0.0 or hi - lo < 2:
+            return 0.0
+        p = torch.stack([kf.T_wk[:3, 3] for kf in self.keyframes[lo : hi + 1]])
+        return (lc.drift_per_metre * float((p[1:] - p[:-1]).norm(dim=1).sum())) ** 2
+
+    def _jitter_variance(self, k: int) -> Tensor | None:
+        """(3,) float64 translation variance of keyframe ``k``'s odometry edge from its frames' jitter, m^2.
+
+        ``loop.jitter_variance_scale`` times the mean square second difference of the positions
+        of the frames tracked against keyframe ``k`` (the newest run of the log; frames placed by
+        a motion prior left out) over 6, per axis of the keyframe's frame; None with fewer than
+        ``loop.min_jitter_frames`` such frames. Runs once per keyframe. (The attitude's share,
+        which consecutive frames do not show, is added by ``_information``.)
+        """
+        lc, log = self.cfg.loop, self.frames
+        start = len(log)
+        while start > 0 and log.kf[start - 1] == k:
+            start -= 1
+        rows = [m for m in range(start, len(log)) if log.prior[m] is None]
+        if len(rows) < lc.min_jitter_frames:
+            return None
+        p = torch.stack([log.T_kf[m][:3, 3] for m in rows]).to(torch.float64)
+        d2 = p[2:] - 2.0 * p[1:-1] + p[:-2]
+        return lc.jitter_variance_scale * d2.square().mean(dim=0) / 6.0
+
+    def _information(
+        self, T_ij: Tensor, variance: Tensor | None, dt: float, depth: float, loop: bool, scaled: bool = True, extra: float = 0.0
+    ) -> Tensor:
+        """(6, 6) information of edge ``T_ij`` (4, 4) from its translation variance (3,) m^2.
 
         The variance is per axis of node i's frame, where the match measured the translation; the
         residual's translation is in node j's (``log(T_ij^-1 T_wi^-1 T_wj)``), so the translation
         block is rotated by ``R_ij``.
 
-        Translation: the correlation's Eq. (19) variance (x, y) and the depth variance (z), each
-        scaled (``loop.translation_variance_scale``, ``loop.depth_variance_scale``) and floored.
+        Translation: a match's Eq. (19) variance (x, y) and depth variance (z), each scaled
+        (``loop.translation_variance_scale``, ``loop.depth_variance_scale``; ``scaled=False``: a
+        variance already calibrated, ``_jitter_variance``), plus the attitude's share, then
+        floored. The attitude's error between the two keyframes, ``dt`` seconds apart
+        (``_rotation_variance``), turns the orthographic image the match was made in, and so
+        shifts its content across the image plane by about the scene's ``depth`` (metres) times
+        the angle: ``depth^2 σ_r^2`` is added to x and y. Consecutive frames share the attitude's
+        slow drift, so their jitter does not show it; over a loop's span it is the largest term
+        with an inertial attitude. ``extra`` (m^2) is added to every axis (``_drift_variance``).
         Rotation: for odometry, the attitude source's error between keyframes ``dt`` seconds
         apart (``LoopConfig``); a loop edge carries none, since its rotation is the attitude's
         own estimate, already in the graph through the odometry edges.
@@ -464,7 +537,8 @@ class NISlam:
         if variance is None:
             variance = torch.full((3,), math.inf, dtype=torch.float64)
         scale = torch.tensor([lc.translation_variance_scale, lc.translation_variance_scale, lc.depth_variance_scale], dtype=torch.float64)
-        var_t = (variance.to(torch.float64) * scale).nan_to_num(nan=1.0, posinf=1.0).clamp(lc.min_translation_sigma_m**2, 1.0)
+        shift = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64) * depth**2 * self._rotation_variance(dt)
+        var_t = (variance.to(torch.float64) * (scale if scaled else 1.0) + shift + extra).nan_to_num(nan=1.0, posinf=1.0).clamp(lc.min_translation_sigma_m**2, 1.0)
         R = T_ij[:3, :3].to(torch.float64)
         info_t = R.T @ torch.diag(1.0 / var_t) @ R
         if loop:
@@ -480,13 +554,15 @@ class NISlam:
             return math.radians(lc.groundtruth_rotation_sigma_deg) ** 2
         dt = abs(dt)
         drift = (lc.gyro_bias_sigma * dt) ** 2 + cfg.sim_gyro_noise**2 * dt + cfg.sim_bias_walk**2 * dt**3 / 3
-        return math.radians(lc.rotation_sigma_deg) ** 2 + drift
+        return math.radians(lc.rotation_sigma_deg) ** 2 + min(drift, math.radians(lc.max_drift_deg) ** 2)
 
-    def _add_edge(self, i: int, j: int, T_ij: Tensor, information: Tensor, loop: bool = False) -> None:
+    def _add_edge(self, i: int, j: int, T_ij: Tensor, information: Tensor, test_information: Tensor | None = None, loop: bool = False) -> None:
+        """Append an edge with its optimisation information and its loop test's (None: the same)."""
         self.edges_i.append(i)
         self.edges_j.append(j)
         self.edges_T.append(T_ij.to(torch.float64))
         self.edges_info.append(information)
+        self.edges_test_info.append(information if test_information is None else test_information)
         self.edges_loop.append(loop)
 
     # ------------------------------------------------------------------ loop closure
@@ -586,6 +662,7 @@ class NISlam:
             torch.tensor(self.edges_j, dtype=torch.int64),
             torch.stack(self.edges_T),
             torch.stack(self.edges_info),
+            torch.stack(self.edges_test_info),
         )
 
     def _try_loop(self, j_old: int, k_new: int, T_jk: Tensor, variance: Tensor, window: int | None = None) -> bool:
@@ -604,18 +681,31 @@ class NISlam:
         """
         t0 = self._tic()
         lc = self.cfg.loop
-        info = self._information(T_jk, variance, 0.0, loop=True)
-        i, j, T_ij, info_all = self._edges()
+        span = self.keyframes[k_new].timestamp - self.keyframes[j_old].timestamp
+        info = self._information(T_jk, variance, span, 0.0, loop=True)
+        test_info = info
+        if self._jitter_test:
+            depth = self.keyframes[k_new].depth
+            test_info = self._information(T_jk, variance, span, depth, loop=True, extra=self._drift_variance(j_old, k_new))
+        i, j, T_ij, info_all, test_all = self._edges()
         T0 = torch.stack([kf.T_wk for kf in self.keyframes])
         lo = 0 if window is None else window
         if lo:
             inside = (i >= lo) & (j >= lo)
-            i, j, T_ij, info_all, T0 = i[inside] - lo, j[inside] - lo, T_ij[inside], info_all[inside], T0[lo:]
+            i, j, T_ij, info_all, test_all, T0 = i[inside] - lo, j[inside] - lo, T_ij[inside], info_all[inside], test_all[inside], T0[lo:]
         test = edge_consistency(
-            T0, i, j, T_ij, info_all, j_old - lo, k_new - lo, T_jk.to(torch.float64), info, lc.chi2_quantile,
+            T0, i, j, T_ij, test_all, j_old - lo, k_new - lo, T_jk.to(torch.float64), test_info, lc.chi2_quantile,
             fixed=0, config=LMConfig(iterations=20, tol=1e-10),
         )
         res = test.result
+        if self._jitter_test and test.consistent:
+            # The test's covariances decide; the graph is optimised with the paper's (Eq. (19)),
+            # under which the loop, trusted more than the odometry, corrects the whole drift.
+            res = optimize_pose_graph(
+                res.T_wc, torch.cat([i, torch.tensor([j_old - lo])]), torch.cat([j, torch.tensor([k_new - lo])]),
+                torch.cat([T_ij, T_jk.to(torch.float64)[None]]), torch.cat([info_all, info[None]]),
+                fixed=0, config=LMConfig(iterations=20, tol=1e-10),
+            )
         odo = ~torch.tensor(self.edges_loop, dtype=torch.bool)
         if lo:
             odo = odo[inside]
@@ -637,7 +727,7 @@ class NISlam:
             counts["rejected_by_odometry"] += 1
             logger.info("edge %d -> %d rejected: odometry bent by %.3f m", j_old, k_new, bend)
             return False
-        self._add_edge(j_old, k_new, T_jk, info, loop=True)
+        self._add_edge(j_old, k_new, T_jk, info, test_info, loop=True)
         counts["accepted"] += 1
         self._history_start = len(self.frames)
         for kf, T in zip(self.keyframes[lo:], res.T_wc):
@@ -719,6 +809,7 @@ class NISlam:
             "loops": dict(self.loops),
             "loop_tests": list(self.loop_tests),
             "local_window": dict(self.local),
+            "odometry_variances": dict(self.odometry_variances),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,
         }
 
