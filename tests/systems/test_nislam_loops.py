@@ -156,6 +156,27 @@ def test_local_window_edge_moves_only_the_window():
     assert system.local["rejected_by_chi2"] == 1
 
 
+def test_loop_trials_log_their_chi_square_ratio():
+    from torchslam.systems.monitor import Monitor
+
+    class Recorder(Monitor):
+        def __init__(self) -> None:
+            self.values: dict[str, list[float]] = {}
+
+        def scalar(self, tag, value, step) -> None:
+            self.values.setdefault(tag, []).append(value)
+
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    monitor = Recorder()
+    system = _Planting(config_from_dict(NISlamConfig, {"attitude": "groundtruth"}), monitor=monitor)
+    result, _ = run_with_ate(system, seq)
+    ratios = monitor.values["optimization/loop_chi2"]
+    tests = result.output.metrics["loop_tests"]
+    assert len(ratios) == len(tests) >= 2  # the planted loop and the true one
+    assert ratios == pytest.approx([t["chi2_increase"] / t["threshold"] for t in tests])
+    assert sum(r > 1 for r in ratios) == result.output.metrics["loops"]["rejected_by_chi2"] >= 1
+
+
 def _frame(index: int, dt: float = 1 / 30):
     from types import SimpleNamespace
 

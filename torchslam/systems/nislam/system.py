@@ -714,6 +714,10 @@ class NISlam:
         self.monitor.scalar("optimization/posegraph_ms", self.posegraph_ms[-1], self.keyframes[k_new].frame_index)
         self._toc("posegraph", t0)
         chi2 = float(test.chi2_increase)
+        if math.isfinite(chi2):
+            # The test's statistic against its threshold, per loop trial (TensorBoard).
+            tag = "optimization/loop_chi2" if window is None else "optimization/window_chi2"
+            self.monitor.scalar(tag, chi2 / test.threshold, self.keyframes[k_new].frame_index)
         if window is None:
             self.loop_tests.append(
                 {"keyframe": k_new, "candidate": j_old, "chi2_increase": chi2 if math.isfinite(chi2) else None, "threshold": test.threshold}
