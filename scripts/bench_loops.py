@@ -26,6 +26,7 @@ Three parts, each printed as a markdown table and written to ``scripts/results/b
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -140,6 +141,24 @@ def _nees_stats(errs: list[dict[str, torch.Tensor]]) -> dict[str, float]:
     }
 
 
+class _Miscalibrated:
+    """A sequence whose camera reports focal lengths ``scale`` times those it was rendered with."""
+
+    def __init__(self, seq, scale: float):
+        self._seq = seq
+        cam = seq.camera
+        self.camera = dataclasses.replace(cam, fx=cam.fx * scale, fy=cam.fy * scale)
+
+    def __getattr__(self, name):
+        return getattr(self._seq, name)
+
+    def __iter__(self):
+        return iter(self._seq)
+
+    def __len__(self) -> int:
+        return len(self._seq)
+
+
 def _synthetic(seed: int, frames: int, noise: bool, period: float, trajectory: str = "loop"):
     return generate_sequence(SyntheticConfig(
         frames=frames, period=period, trajectory=trajectory, seed=seed, width=320, height=240, depth_noise=noise,
@@ -223,19 +242,24 @@ def nees(
 
 def long_runs(
     quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True),
-    overrides: dict | None = None, seed: int = 0,
+    overrides: dict | None = None, seed: int = 0, frames: int | None = None, focal_scale: float = 1.0,
 ) -> list[dict]:
     """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule.
 
     ``overrides``: loop settings applied under every rule's own (``--loop``); ``seed``: the
-    synthetic sequence's (``--long-seed``; 0 is a tuning seed, 100-104 are held out).
+    synthetic sequence's (``--long-seed``; 0 is a tuning seed, 100-104 are held out); ``frames``:
+    its length (``--long-frames``; the same lap in fewer frames moves faster); ``focal_scale``:
+    the focal lengths the system is given, as a multiple of the rendering's (``--long-focal-scale``;
+    1.03 makes a systematic odometry drift, as a miscalibrated camera does).
     """
-    frames = 150 if quick else 1500
+    frames = frames or (150 if quick else 1500)
     # One lap that takes 90 % of the sequence: the last tenth revisits the start.
     period = frames / 30.0 * 0.9
     rows = []
     for noise in noises:
         seq = _synthetic(seed, frames, noise, period)
+        if focal_scale != 1.0:
+            seq = _Miscalibrated(seq, focal_scale)
         for att in attitudes:
             for rule, loop in RULES.items():
                 if rule not in rules:
@@ -249,7 +273,7 @@ def long_runs(
                 loops = out.metrics["loops"]
                 planted = system.planted
                 row = {
-                    "frames": frames, "seed": seed, "depth_noise": noise, "attitude": att, "rule": rule,
+                    "frames": frames, "seed": seed, "focal_scale": focal_scale, "depth_noise": noise, "attitude": att, "rule": rule,
                     "keyframes": len(out.keyframe_indices), "ate_rmse_m": a.stats["rmse"], **{f"loops_{k}": v for k, v in loops.items()},
                     "planted_false": len(planted), "planted_false_accepted": sum(p["accepted"] for p in planted),
                     "planted_accepted_by_kind": {k: sum(p["accepted"] for p in planted if p["kind"] == k) for k in sorted({p["kind"] for p in planted})},
@@ -352,6 +376,8 @@ def main() -> None:
     ap.add_argument("--rules", default="chi2,old-bend,no-loops", help="acceptance rules of the long runs (comma-separated)")
     ap.add_argument("--depth-noise", default="off,on", help="depth noise of the long runs: off, on or both (comma-separated)")
     ap.add_argument("--long-seed", type=int, default=0, help="seed of the long runs' synthetic sequence (100-104: held out)")
+    ap.add_argument("--long-frames", type=int, default=None, help="frames of the long runs' lap (default 1500; fewer: faster motion)")
+    ap.add_argument("--long-focal-scale", type=float, default=1.0, help="focal lengths given to the system / rendered ones (1.03: systematic drift)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the parts of earlier runs (each a JSON this script wrote) into --out and print their tables")
@@ -374,7 +400,7 @@ def main() -> None:
                               tuple(args.nees_splits.split(",")), tuple(args.nees_kinds.split(",")), tuple(args.nees_attitudes.split(",")))
     if args.only in (None, "long"):
         result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
-                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed)
+                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed, args.long_frames, args.long_focal_scale)
     if args.only in (None, "window"):
         result["window_size"] = args.window
         result["window"] = window(args.quick, args.window)
