@@ -447,15 +447,13 @@ class NISlam:
         if previous is not None:
             dt = kf.timestamp - previous.timestamp
             T_ij = se3_inverse(previous.T_wk) @ T_wi
-            info = self._information(T_ij, src.variance, dt, 0.0, loop=False)
+            info = test_info = self._information(T_ij, src.variance, dt, 0.0, loop=False)
             jitter = self._jitter_variance(kid - 1) if self._jitter_test else None
             self.odometry_variances["jitter" if jitter is not None else "eq19"] += 1
-            if jitter is not None:
-                test_info = self._information(T_ij, jitter, dt, kf.depth, loop=False, scaled=False)
-            elif self._jitter_test:
-                test_info = self._information(T_ij, src.variance, dt, kf.depth, loop=False)
-            else:
-                test_info = info
+            if self._jitter_test:
+                # The jitter is calibrated already; without it, the match's Eq. (19) variance.
+                variance, scaled = (src.variance, True) if jitter is None else (jitter, False)
+                test_info = self._information(T_ij, variance, dt, kf.depth, loop=False, scaled=scaled)
             self._add_edge(kid - 1, kid, T_ij, info, test_info)
         t0 = self._toc("keyframe", t0)
         self.monitor.scalar("progress/keyframes", len(self.keyframes), frame.index)
