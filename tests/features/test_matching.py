@@ -20,6 +20,7 @@ from torchslam.features import (
     pad_descriptors,
     popcount64,
 )
+from torchslam.features.matching import first_argmax_columns
 
 KERNELS = ["swar", "lut", "matmul", "auto"]
 
@@ -199,6 +200,27 @@ def test_match_rules_equal_loop_reference(backend, mutual, ratio, max_distance):
     got = [(int(i), int(j), int(d)) for (i, j), d in zip(m.pairs.tolist(), m.distances.tolist())]
     assert got == ref
     assert len(ref) > 10  # the rules are exercised, not vacuous
+
+
+@pytest.mark.parametrize("backend", ["torch", "opencv", "int8"])
+def test_mutual_matching_takes_the_first_index_on_ties(backend):
+    # Repeated queries tie for a reference's nearest and repeated references for a query's;
+    # 340 queries span several row blocks of the int8 path's column argmax.
+    gen = torch.Generator().manual_seed(11)
+    a, b = _correlated(gen, 300, 170)
+    a, b = torch.cat([a, a[100:140]]), torch.cat([b, b[:30]])
+    ref = _np_match(a.numpy(), b.numpy(), 60, True, None)
+    m = match_descriptors(a, b, max_distance=60, mutual=True, backend=backend)
+    got = [(int(i), int(j), int(d)) for (i, j), d in zip(m.pairs.tolist(), m.distances.tolist())]
+    assert got == ref
+    assert len(ref) > 50
+
+
+@pytest.mark.parametrize("k1,k2", [(1, 5), (63, 7), (64, 64), (65, 3), (130, 200), (1000, 1)])
+@pytest.mark.parametrize("spread", [0, 1, 50])
+def test_first_argmax_columns_equals_argmax(k1, k2, spread):
+    d = np.random.default_rng(k1 + k2 + spread).integers(-spread, spread + 1, (k1, k2)).astype(np.int32)
+    np.testing.assert_array_equal(first_argmax_columns(d), d.argmax(0))
 
 
 @pytest.mark.parametrize("kernel,backend", [("swar", "torch"), ("lut", "torch"), ("matmul", "torch"), ("swar", "opencv"), ("swar", "int8"), ("swar", "auto")])

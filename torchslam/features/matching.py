@@ -433,16 +433,48 @@ def _match_int8(d1: Tensor, d2: Tensor, max_distance, mutual, ratio) -> BatchedM
         empty = torch.full((1, k1), -1, dtype=torch.int64)
         return BatchedMatches(empty, empty.to(torch.int32))
     dot = torch._int_mm(_signs(d1.cpu(), torch.int8), _signs(d2.cpu(), torch.int8).T)  # (K1, K2) int32
-    best_dot, best_idx = dot.max(1)
+    # The reductions in NumPy: its row argmax and column max are vectorised where torch's CPU
+    # max-with-indices is not (2,000 x 2,000: 0.3 ms against 4 ms by rows, 11 ms by columns).
+    d = dot.numpy()
+    best_idx = d.argmax(1)  # the first index on ties
+    best_dot = np.take_along_axis(d, best_idx[:, None], 1)[:, 0]
     best = (_BITS - best_dot) // 2
     keep = best <= max_distance
     if ratio is not None and k2 >= 2:
-        second = (_BITS - dot.topk(2, dim=1).values[:, 1]) // 2
-        keep &= best.double() < ratio * second.double()
+        second = (_BITS - dot.topk(2, dim=1).values[:, 1].numpy()) // 2
+        keep &= best.astype(np.float64) < ratio * second.astype(np.float64)
     if mutual:
-        keep &= dot.max(0).indices[best_idx] == torch.arange(k1)
-    index = torch.where(keep, best_idx, torch.full_like(best_idx, -1))
-    return BatchedMatches(index[None], best.to(torch.int32)[None])
+        keep &= first_argmax_columns(d)[best_idx] == np.arange(k1)
+    index = np.where(keep, best_idx, -1).astype(np.int64)
+    return BatchedMatches(torch.from_numpy(index)[None], torch.from_numpy(best.astype(np.int32))[None])
+
+
+# Rows per block of first_argmax_columns: a block's column maxima are one vectorised reduction,
+# and a column's first maximum inside its block is one short contiguous row.
+_ARGMAX_BLOCK = 64
+
+
+def first_argmax_columns(d: np.ndarray) -> np.ndarray:
+    """(K2,) int64 row index of each column's maximum of a (K1, K2) array, the first on ties.
+
+    Equals ``d.argmax(0)`` (and torch's ``max(0).indices``), which walk the columns with a
+    stride and are slow on a large array: here the maxima of blocks of rows are taken along
+    contiguous rows, the first block that attains each column's maximum
+    is found among the few block maxima, and the first row within that block from one gather.
+    """
+    k1, k2 = d.shape
+    if k1 == 0:
+        raise ValueError("first_argmax_columns: no rows")
+    b = _ARGMAX_BLOCK
+    full = k1 // b
+    parts = [d[: full * b].reshape(full, b, k2).max(1)] if full else []  # a view: no copy
+    if k1 > full * b:
+        parts.append(d[full * b :].max(0, keepdims=True))
+    block = np.concatenate(parts).argmax(0)  # the first block holding each column's maximum
+    rows = np.minimum(block[:, None] * b + np.arange(b), k1 - 1)  # (K2, b); clipped repeats come last
+    cols = np.arange(k2)[:, None]
+    within = np.take(d.reshape(-1), rows * k2 + cols).argmax(1)
+    return np.take_along_axis(rows, within[:, None], 1)[:, 0].astype(np.int64)
 
 
 def _match_per_pair(d1, d2, valid1, valid2, max_distance, mutual, ratio, one) -> BatchedMatches:
