@@ -297,3 +297,47 @@ def test_motion_prior_stays_a_rigid_motion_when_the_step_is_not_quite_one():
     sys_._last_T_kf = step
     R = (torch.linalg.inv(step) @ sys_._predicted_T_kf(2 / 30))[:3, :3]  # the increment the prior adds
     torch.testing.assert_close(R.T @ R, torch.eye(3, dtype=torch.float64), atol=1e-9, rtol=0)
+
+
+def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch):
+    # Frames 12-14 claim to keep few correspondences (as blurred frames do): with
+    # keyframe_weak_ratio the frame before the first of them becomes a keyframe, linked by its own
+    # registration, and the weak frame is registered to it; no frame is recorded twice.
+    seq = generate_sequence(SyntheticConfig(frames=30, trajectory="translate", seed=1, **SMALL))
+    weak = {12, 13, 14}
+    seen: list[int] = []
+    real = fe.SparseFrontend.register
+
+    def register(self, keyframe, frame, T_guess):
+        reg = real(self, keyframe, frame, T_guess)
+        if seen[-1] in weak and keyframe is not None and keyframe.frame_index < 11:
+            return dataclasses.replace(reg, correspondences=reg.correspondences // 10)
+        return reg
+
+    real_track = gc.GCSlam.track
+
+    def track(self, frame):
+        seen.append(frame.index)
+        return real_track(self, frame)
+
+    monkeypatch.setattr(fe.SparseFrontend, "register", register)
+    monkeypatch.setattr(gc.GCSlam, "track", track)
+    off, a_off = _run(seq, loops=False)
+    seen.clear()
+    on, a_on = _run(seq, loops=False, keyframe_weak_ratio=0.5)
+    assert off.output.metrics["tracking"]["promoted_keyframes"] == 0
+    assert on.output.metrics["tracking"]["promoted_keyframes"] == 1
+    kfs = on.output.keyframe_indices.tolist()
+    assert 11 in kfs and 11 not in off.output.keyframe_indices.tolist(), kfs
+    assert on.output.frame_indices.tolist() == list(range(30))  # each frame posed once, in order
+    # The frames before are untouched; the promoted one moves from its registration's pose to
+    # its pair's optimum (sub-millimetre); the rest stays as accurate.
+    torch.testing.assert_close(on.output.T_wc[:11], off.output.T_wc[:11], atol=1e-9, rtol=0)
+    torch.testing.assert_close(on.output.T_wc[11], off.output.T_wc[11], atol=1e-3, rtol=0)
+    assert a_on.stats["rmse"] < 0.01, a_on.stats
+
+
+def test_keyframe_weak_ratio_is_checked():
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ConfigError, match="keyframe_weak_ratio"):
+            config_from_dict(GCSlamConfig, {"keyframe_weak_ratio": bad})

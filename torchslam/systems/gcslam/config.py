@@ -41,6 +41,9 @@ class GCSlamConfig:
         keyframe_displacement: a frame becomes a keyframe when the keyframe's points move by
             more than this fraction of the focal length on average (released code: 0.1).
         keyframe_sample_stride: pixel stride of the keyframe points used for that test.
+        keyframe_weak_ratio: a tracked frame that keeps fewer correspondences than this fraction
+            of the most a frame kept to the current keyframe makes the previous tracked frame (if
+            it kept more) a keyframe, and is registered to that one instead (torchslam's; 0: off).
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
@@ -89,6 +92,7 @@ class GCSlamConfig:
     dense: DenseConfig = field(default_factory=DenseConfig)
     keyframe_displacement: float = 0.1
     keyframe_sample_stride: int = 16
+    keyframe_weak_ratio: float = 0.0
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3
@@ -111,6 +115,7 @@ class GCSlamConfig:
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
+        "keyframe_weak_ratio": Limit(ge=0, lt=1),
         "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
         "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
         "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,

@@ -62,7 +62,7 @@ from ..framelog import FrameLog, voxel_downsample
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
 from .config import GCSlamConfig
-from .frontend import PreparedFrame, TrackingFrontend, frontend_class, make_frontend
+from .frontend import PreparedFrame, Registration, TrackingFrontend, frontend_class, make_frontend
 from .optimizer import Anchor, KeyframeEvent, Optimizer, ProcessWorker, Worker, make_worker
 
 __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]
@@ -133,7 +133,8 @@ class GCSlam:
         # the last pose: a motion prior until a loop closure links it).
         self.frames = FrameLog()
         self.lost_in_row = 0
-        self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0}
+        self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0,
+                       "promoted_keyframes": 0}
         self.inliers: list[int] = []
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
@@ -144,6 +145,10 @@ class GCSlam:
         self._velocity: Tensor | None = None
         self._last_time: float | None = None
         self._need_unlinked = False
+        # The last frame recorded against the current keyframe (frame, view, registration) and the
+        # most correspondences a frame kept to that keyframe (``keyframe_weak_ratio``).
+        self._previous: tuple[Frame, PreparedFrame, Registration] | None = None
+        self._best_correspondences = 0
         self._inline_s = 0.0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked:
@@ -206,15 +211,21 @@ class GCSlam:
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         kf = self.keyframes[-1]
-        reg = self.frontend.register(kf, view, self._predicted_T_kf(frame.timestamp))
+        T_pred = self._predicted_T_kf(frame.timestamp)
+        reg = self.frontend.register(kf, view, T_pred)
         clock.lap("registration")
+        if reg.ok and self._weak(reg):
+            reg = self._promote_previous(view, T_pred, clock)
+            kf = self.keyframes[-1]
         if not reg.ok:
             self.counts["tracking_failures"] += 1
             self._velocity = None
+            self._previous = None
             self._relocalize(frame, view)
             clock.lap("relocalization", exclude_s=self._take_inline())
             return
         self._update_velocity(reg.T_kf, frame.timestamp)
+        self._best_correspondences = max(self._best_correspondences, reg.correspondences)
         self.lost_in_row = 0
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
@@ -228,6 +239,36 @@ class GCSlam:
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         self._record(frame, kf.kf, reg.T_kf)
+        self._previous = (frame, view, reg)
+
+    def _weak(self, reg: Registration) -> bool:
+        """Whether ``reg`` keeps fewer than ``keyframe_weak_ratio`` of the best correspondence
+        count of a frame tracked to the current keyframe, with a better previous frame to promote."""
+        ratio, prev = self.cfg.keyframe_weak_ratio, self._previous
+        return (ratio > 0 and prev is not None and reg.correspondences < ratio * self._best_correspondences
+                and prev[2].correspondences > reg.correspondences)
+
+    def _promote_previous(self, view: PreparedFrame, T_pred: Tensor, clock: _Stopwatch) -> Registration:
+        """Make the previous tracked frame a keyframe and register the frame to it instead.
+
+        A frame that keeps few of the keyframe's correspondences (blur, a fast turn) would, once
+        the displacement rule fires, link its keyframe to the graph by a weak registration; the
+        previous frame still registered well. It becomes the keyframe (linked by its own
+        registration) and the frame is registered to it; where that fails, the frame goes on as
+        a failed registration (relocalisation against the recent keyframes, the old one included).
+        """
+        prev_frame, prev_view, prev_reg = self._previous
+        old = self.keyframes[-1]
+        if prev_view.features is None:
+            self.frontend.features(prev_view)
+            clock.lap("orb_extraction")
+        self._new_keyframe(prev_frame, prev_view, reference=old.kf, T_ref=prev_reg.T_kf, stats=prev_reg.stats, promote=True)
+        self.counts["promoted_keyframes"] += 1
+        clock.lap("keyframe_insertion", exclude_s=self._take_inline())
+        T_prev_inv = se3_inverse(prev_reg.T_kf.to(torch.float64))
+        again = self.frontend.register(self.keyframes[-1], view, T_prev_inv @ T_pred.to(torch.float64))
+        clock.lap("registration")
+        return again
 
     def _predicted_T_kf(self, t: float) -> Tensor:
         """(4, 4) initial pose of the frame at time ``t`` in the current keyframe (``motion_prior``)."""
@@ -296,9 +337,13 @@ class GCSlam:
 
     def _new_keyframe(
         self, frame: Frame, view: PreparedFrame, reference: int | None, T_ref: Tensor | None, stats: PairStats | None,
-        relocalized: bool = False,
+        relocalized: bool = False, promote: bool = False,
     ) -> None:
-        """Make the frame keyframe ``len(keyframes)``, linked to ``reference`` by ``T_ref`` and ``stats`` (or unlinked)."""
+        """Make the frame keyframe ``len(keyframes)``, linked to ``reference`` by ``T_ref`` and ``stats`` (or unlinked).
+
+        ``promote``: the frame is the last one recorded (``_promote_previous``); its record is
+        rebased onto the new keyframe instead of recorded again.
+        """
         cfg = self.cfg
         feats = self.frontend.features(view)
         rgb, depth = view.rgb, view.depth
@@ -333,7 +378,13 @@ class GCSlam:
         if not self._worker.threaded:
             # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
             self._inline_s += time.perf_counter() - t_submit
-        self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device), prior="unlinked" if anchor is not None else None)
+        if promote:
+            self.frames.rebase_last(kid)
+            self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
+        else:
+            self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device), prior="unlinked" if anchor is not None else None)
+        self._previous = None
+        self._best_correspondences = 0
         self.monitor.scalar("progress/keyframes", kid + 1, frame.index)
 
     # ------------------------------------------------------------------ monitoring
