@@ -299,14 +299,16 @@ def test_motion_prior_stays_a_rigid_motion_when_the_step_is_not_quite_one():
     torch.testing.assert_close(R.T @ R, torch.eye(3, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
-def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch):
+@pytest.mark.parametrize("frontend", ["sparse", "dense"])
+def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch, frontend):
     # Frames 12-14 claim to keep few correspondences (as blurred frames do): with
     # keyframe_weak_ratio the frame before the first of them becomes a keyframe, linked by its own
     # registration, and the weak frame is registered to it; no frame is recorded twice.
     seq = generate_sequence(SyntheticConfig(frames=30, trajectory="translate", seed=1, **SMALL))
     weak = {12, 13, 14}
     seen: list[int] = []
-    real = fe.SparseFrontend.register
+    cls = fe.frontend_class(Frontend(frontend))
+    real = cls.register
 
     def register(self, keyframe, frame, T_guess):
         reg = real(self, keyframe, frame, T_guess)
@@ -320,11 +322,11 @@ def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch):
         seen.append(frame.index)
         return real_track(self, frame)
 
-    monkeypatch.setattr(fe.SparseFrontend, "register", register)
+    monkeypatch.setattr(cls, "register", register)
     monkeypatch.setattr(gc.GCSlam, "track", track)
-    off, a_off = _run(seq, loops=False)
+    off, a_off = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0)
     seen.clear()
-    on, a_on = _run(seq, loops=False, keyframe_weak_ratio=0.5)
+    on, a_on = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0.5)
     assert off.output.metrics["tracking"]["promoted_keyframes"] == 0
     assert on.output.metrics["tracking"]["promoted_keyframes"] == 1
     kfs = on.output.keyframe_indices.tolist()
@@ -341,3 +343,20 @@ def test_keyframe_weak_ratio_is_checked():
     for bad in (-0.1, 1.0):
         with pytest.raises(ConfigError, match="keyframe_weak_ratio"):
             config_from_dict(GCSlamConfig, {"keyframe_weak_ratio": bad})
+
+
+def test_a_promoted_keyframe_joins_mild_but_proposes_no_loops():
+    from torchslam.registration.sparse import frame_features
+
+    seq = generate_sequence(SyntheticConfig(frames=1, trajectory="translate", seed=1, **SMALL))
+    frame = seq[0]
+    feats = frame_features(frame.rgb, frame.depth, seq.camera)
+    assert len(feats) > 100
+    opt = go.Optimizer(GCSlamConfig(threaded=False), Monitor())
+    p = torch.rand(1, 40, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) + 1
+    stats, eye = PairStats.from_padded(p, p), torch.eye(4, dtype=torch.float64)
+    assert opt.begin(go.KeyframeEvent(0, None, None, None, feats)) == []
+    assert opt.begin(go.KeyframeEvent(1, 0, eye, stats, feats, promoted=True)) == []
+    assert len(opt.mild) == 2  # it is in the place database all the same
+    # The same view again: keyframe 0 is proposed (1 is the reference, never a loop candidate).
+    assert opt.begin(go.KeyframeEvent(2, 1, eye, stats, feats)) == [0]

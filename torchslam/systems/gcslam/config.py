@@ -43,7 +43,8 @@ class GCSlamConfig:
         keyframe_sample_stride: pixel stride of the keyframe points used for that test.
         keyframe_weak_ratio: a tracked frame that keeps fewer correspondences than this fraction
             of the most a frame kept to the current keyframe makes the previous tracked frame (if
-            it kept more) a keyframe, and is registered to that one instead (torchslam's; 0: off).
+            it kept more) a keyframe, and is registered to that one instead (torchslam's, for
+            blurred stretches; 0: off). Such a promoted keyframe joins MILD but proposes no loops.
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
@@ -92,7 +93,7 @@ class GCSlamConfig:
     dense: DenseConfig = field(default_factory=DenseConfig)
     keyframe_displacement: float = 0.1
     keyframe_sample_stride: int = 16
-    keyframe_weak_ratio: float = 0.0
+    keyframe_weak_ratio: float = 0.5
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3

@@ -67,6 +67,7 @@ class KeyframeEvent:
     features: FrameFeatures  # ORB features of the keyframe (for MILD and loop registration)
     anchor: Anchor | None = None  # unlinked keyframe only: the last tracked frame
     frame_index: int = 0  # the keyframe's sequence frame index (the TensorBoard step)
+    promoted: bool = False  # made from the previous frame of a weak one (``keyframe_weak_ratio``)
 
 
 class Optimizer:
@@ -124,7 +125,9 @@ class Optimizer:
         self.features.append(ev.features)
         t0 = time.perf_counter()
         candidates: list[int] = []
-        if cfg.loops and len(self.mild):
+        # A promoted keyframe lies a frame or two after the keyframe before it, whose loops (and
+        # the next keyframe's) cover its place: it joins MILD but proposes no loops of its own.
+        if cfg.loops and len(self.mild) and not ev.promoted:
             ids, _ = self.mild.query(ev.features.descriptors)
             candidates = [int(c) for c in ids if int(c) != ev.reference]
         self.mild.add(ev.kf, ev.features.descriptors)

@@ -326,6 +326,7 @@ class GCSlam:
 
     def _record_lost(self, frame: Frame) -> None:
         self._velocity = None
+        self._previous = None  # a held frame is the last record now: nothing to promote
         self.counts["lost_frames"] += 1
         self.lost_in_row += 1
         self.frames.hold(frame, "lost")  # before the first pose there is nothing to hold
@@ -372,7 +373,7 @@ class GCSlam:
             _TrackKeyframe(kid, frame.index, feats, points[sample], pix, view.dense, points[m].float(), colors)
         )
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
-                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index)
+                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote)
         t_submit = time.perf_counter()
         self._worker.submit(ev)
         if not self._worker.threaded:
