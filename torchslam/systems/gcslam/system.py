@@ -201,9 +201,8 @@ class GCSlam:
         unlinked = not self.keyframes or self._need_unlinked
         if view is None:
             view = self.frontend.prepare(rgb, depth, keyframe=unlinked, lap=clock.lap)
-        elif unlinked and view.features is None:
-            self.frontend.features(view)
-            clock.lap("orb_extraction")
+        elif unlinked:
+            self._features(view, clock)
         if unlinked:
             self._velocity, self._last_time = None, frame.timestamp
             self._new_keyframe(frame, view, reference=None, T_ref=None, stats=None)
@@ -232,14 +231,18 @@ class GCSlam:
         moved = self._displacement(kf, reg.T_kf)
         clock.lap("keyframe_decision")
         if moved > cfg.keyframe_displacement * self.camera.fx:
-            if view.features is None:
-                self.frontend.features(view)
-                clock.lap("orb_extraction")
+            self._features(view, clock)
             self._new_keyframe(frame, view, reference=kf.kf, T_ref=reg.T_kf, stats=reg.stats)
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         self._record(frame, kf.kf, reg.T_kf)
         self._previous = (frame, view, reg)
+
+    def _features(self, view: PreparedFrame, clock: _Stopwatch) -> None:
+        """Compute a frame's ORB features where it has none yet, timed as ``orb_extraction``."""
+        if view.features is None:
+            self.frontend.features(view)
+            clock.lap("orb_extraction")
 
     def _weak(self, reg: Registration) -> bool:
         """Whether ``reg`` keeps fewer than ``keyframe_weak_ratio`` of the best correspondence
@@ -259,9 +262,7 @@ class GCSlam:
         """
         prev_frame, prev_view, prev_reg = self._previous
         old = self.keyframes[-1]
-        if prev_view.features is None:
-            self.frontend.features(prev_view)
-            clock.lap("orb_extraction")
+        self._features(prev_view, clock)
         self._new_keyframe(prev_frame, prev_view, reference=old.kf, T_ref=prev_reg.T_kf, stats=prev_reg.stats, promote=True)
         self.counts["promoted_keyframes"] += 1
         clock.lap("keyframe_insertion", exclude_s=self._take_inline())

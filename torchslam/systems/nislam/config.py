@@ -84,8 +84,8 @@ class LoopConfig:
             rotation 0.10° over 4 s, 0.32° over 15 s, 0.40° over 30 s, 0.37° over 45 s, where the
             unbounded model says 0.15°, 0.44°, 0.88°, 1.31°).
         acceptance_covariance: the edge covariances of the loop test (the pose graph is always
-            optimised with the paper's, below). "eq19" (the default): the optimisation's own.
-            "jitter" (beyond the paper): an odometry edge's translation variance is
+            optimised with the paper's, below). "eq19": the optimisation's own (the paper's).
+            "jitter" (the default, beyond the paper): an odometry edge's translation variance is
             ``jitter_variance_scale`` times the jitter of the frames tracked against its first
             keyframe, per axis of its frame (the mean square of their positions' second
             differences over 6, the variance of white noise on the positions; consecutive matches
