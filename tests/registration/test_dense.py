@@ -33,6 +33,7 @@ from torchslam.registration.dense import (
     _subsample,
     _warp,
     dense_correspondences,
+    dense_images,
     prepare_dense_frame,
     register_dense,
     register_dense_frames,
@@ -261,6 +262,27 @@ def test_undistortion_recovers_the_pinhole_image(synthetic):
     both = m & (fixed.depth[:, 0] > 0)
     rel = ((fixed.depth - ideal.depth)[:, 0][both] / ideal.depth[:, 0][both]).abs()
     assert rel.median() < 1e-3
+
+
+@pytest.mark.parametrize("distortion", [None, FR1_DISTORTION])
+def test_working_images_rebuild_the_prepared_pyramid(synthetic, distortion):
+    # What GC-SLAM's optimiser keeps of a keyframe (dense_images, or a prepared frame's images())
+    # gives back the same pyramid as preparing the frame: every level, the reference channels too.
+    cam, rgb, depth, _ = synthetic
+    cam = dataclasses.replace(cam, distortion=distortion)
+    cfg = DenseConfig(width=160, height=120)
+    full = prepare_dense_frame(rgb[:2], depth[:2], cam, cfg)
+    images = dense_images(rgb[:2], depth[:2], cam, cfg)
+    assert (images.inside is None) == (distortion is None) and len(images) == 2
+    assert images.grey.shape == (2, 1, 120, 160)
+    for rebuilt in (images.pyramid(), full.images().pyramid()):
+        assert len(rebuilt.levels) == len(full.levels) and rebuilt.camera == full.camera
+        for a, b in zip(rebuilt.levels, full.levels):
+            assert a.camera == b.camera
+            for name in ("grey", "depth", "inside", "points", "valid", "reference"):
+                assert torch.equal(getattr(a, name), getattr(b, name)), name
+    with pytest.raises(ShapeError, match="rgb"):
+        dense_images(rgb[:2, :2], depth[:2], cam, cfg)
 
 
 # ------------------------------------------------------------------ planted poses

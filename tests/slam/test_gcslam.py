@@ -13,7 +13,7 @@ from torchslam.data.tum import TUMSequence
 from torchslam.errors import ConfigError, TorchSlamError
 from torchslam.fastgo import PairStats
 from torchslam.fastgo.synthetic import make_correspondences
-from torchslam.geometry import se3_exp, se3_inverse
+from torchslam.geometry import se3_exp, se3_inverse, se3_log
 from torchslam.systems import run_sequence
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 from torchslam.systems.gcslam import frontend as fe
@@ -21,6 +21,7 @@ from torchslam.systems.gcslam import optimizer as go
 from torchslam.systems.gcslam import system as gc
 from torchslam.systems.gcslam.config import Frontend
 from torchslam.systems.monitor import Monitor
+from torchslam.registration.dense import dense_images
 from torchslam.registration.sparse import FrameFeatures
 
 from tests._helpers import REPO_ROOT, run_gcslam as _run
@@ -324,9 +325,11 @@ def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch, fronten
 
     monkeypatch.setattr(cls, "register", register)
     monkeypatch.setattr(gc.GCSlam, "track", track)
-    off, a_off = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0)
+    # ORB-measured pairs (keyframe_pairs=sparse): the promoted keyframe's pose is then its own
+    # tracked registration's, which the assertions below compare.
+    off, a_off = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0, keyframe_pairs="sparse")
     seen.clear()
-    on, a_on = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0.5)
+    on, a_on = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0.5, keyframe_pairs="sparse")
     assert off.output.metrics["tracking"]["promoted_keyframes"] == 0
     assert on.output.metrics["tracking"]["promoted_keyframes"] == 1
     kfs = on.output.keyframe_indices.tolist()
@@ -360,3 +363,101 @@ def test_a_promoted_keyframe_joins_mild_but_proposes_no_loops():
     assert len(opt.mild) == 2  # it is in the place database all the same
     # The same view again: keyframe 0 is proposed (1 is the reference, never a loop candidate).
     assert opt.begin(go.KeyframeEvent(2, 1, eye, stats, feats)) == [0]
+
+
+# ------------------------------------------------------------------ keyframe pairs measured densely
+
+
+def test_keyframe_pairs_option_resolves_per_frontend_and_is_checked():
+    assert GCSlamConfig().dense_pairs  # auto with the sparse front-end: dense pairs
+    assert not GCSlamConfig(frontend="dense").dense_pairs  # auto with the dense one: its own
+    assert not GCSlamConfig(keyframe_pairs="sparse").dense_pairs
+    assert GCSlamConfig(frontend="dense", keyframe_pairs="dense").dense_pairs
+    with pytest.raises(ConfigError, match="keyframe_pairs"):
+        config_from_dict(GCSlamConfig, {"keyframe_pairs": "photometric"})
+
+
+def _keyframe_pair(offset_m=0.03, angle_rad=0.03):
+    """Two noise-free keyframes' images, their true ``T_01`` and an ORB-like pose off by a few cm / degrees."""
+    seq = generate_sequence(SyntheticConfig(frames=7, depth_noise=False, trajectory="handheld", seed=2, batch_size=7, **SMALL))
+    rgb, depth = seq.render([0, 6])
+    T_01 = se3_inverse(seq.groundtruth.T_wc[0]) @ seq.groundtruth.T_wc[6]
+    T_orb = se3_exp(torch.tensor([offset_m, -offset_m, 0.0, 0.0, angle_rad, 0.0], dtype=torch.float64)) @ T_01
+    images = [dense_images(rgb[k : k + 1], depth[k : k + 1], seq.camera) for k in range(2)]
+    return images, T_01, T_orb
+
+
+def _pair_events(images, T_orb, refine=True):
+    feats = FrameFeatures(torch.zeros(0, 2), torch.zeros(0, 32, dtype=torch.uint8), torch.zeros(0, 3, dtype=torch.float64),
+                          torch.zeros(0, dtype=torch.bool))
+    # The ORB pair's statistics: a few exact correspondences of the (wrong) ORB pose.
+    p_j = torch.rand(1, 60, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64) + torch.tensor([0.0, 0.0, 1.5])
+    orb = PairStats.from_padded(p_j @ T_orb[:3, :3].T + T_orb[:3, 3], p_j)
+    return (go.KeyframeEvent(0, None, None, None, feats, None, images=images[0]),
+            go.KeyframeEvent(1, 0, T_orb, orb, feats, None, images=images[1], refine=refine)), orb
+
+
+def test_an_orb_pair_is_measured_again_densely_from_its_pose():
+    images, T_01, T_orb = _keyframe_pair()
+    opt = go.Optimizer(GCSlamConfig(threaded=False), Monitor())
+    events, orb = _pair_events(images, T_orb)
+    for ev in events:
+        gc.insert_keyframe(opt, ev)
+    assert opt.refined == {"odometry": 1, "loops": 0, "failed": 0}
+    assert int(opt.stats[0].count) > 10_000 > int(orb.count)  # the dense correspondences' statistics
+    # FastGO's optimum of the one pair is the dense pose: the ORB pose's 4.2 cm / 1.7 degree error is gone.
+    err = se3_log(se3_inverse(T_01) @ opt.T_wk[1])
+    assert err[:3].norm() < 2e-3 and err[3:].norm() < 1e-3, err
+    assert opt.stage_ms["pair_refinement"] > 0
+
+
+def test_a_failed_dense_measurement_keeps_the_orb_pair(monkeypatch):
+    images, _, T_orb = _keyframe_pair()
+    real = go.register_dense_frames
+
+    def failing(fi, fj, T_init, cfg):
+        res = real(fi, fj, T_init, cfg)
+        return dataclasses.replace(res, success=torch.zeros_like(res.success))
+
+    monkeypatch.setattr(go, "register_dense_frames", failing)
+    opt = go.Optimizer(GCSlamConfig(threaded=False), Monitor())
+    events, orb = _pair_events(images, T_orb)
+    for ev in events:
+        gc.insert_keyframe(opt, ev)
+    assert opt.refined == {"odometry": 0, "loops": 0, "failed": 1}
+    torch.testing.assert_close(opt.stats[0].S_ij, orb.S_ij, rtol=0, atol=0)
+    torch.testing.assert_close(opt.T_wk[1], T_orb, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("keyframe_pairs,refine", [("sparse", True), ("dense", False)])
+def test_orb_pairs_stay_where_dense_pairs_are_off_or_not_asked_for(keyframe_pairs, refine):
+    images, _, T_orb = _keyframe_pair()
+    opt = go.Optimizer(GCSlamConfig(threaded=False, keyframe_pairs=keyframe_pairs), Monitor())
+    events, orb = _pair_events(images, T_orb, refine=refine)
+    for ev in events:
+        gc.insert_keyframe(opt, ev)
+    assert opt.refined == {"odometry": 0, "loops": 0, "failed": 0}
+    torch.testing.assert_close(opt.stats[0].S_ij, orb.S_ij, rtol=0, atol=0)
+    # Only the dense setting keeps the keyframes' images (the rest need none).
+    assert [im is not None for im in opt.images] == [keyframe_pairs == "dense"] * 2
+
+
+@pytest.mark.parametrize("frontend", ["sparse", "dense"])
+def test_dense_keyframe_pairs_in_a_run(frontend):
+    seq = generate_sequence(SyntheticConfig(frames=40, fps=10.0, trajectory="loop", seed=0, **SMALL))
+    dense, a_dense = _run(seq, frontend=frontend, keyframe_pairs="dense")
+    orb, a_orb = _run(seq, frontend=frontend, keyframe_pairs="sparse")
+    m = dense.output.metrics
+    assert m["keyframe_pairs"] == "dense" and orb.output.metrics["dense_pairs"] == {"odometry": 0, "loops": 0, "failed": 0}
+    assert m["loops"]["registered"] >= 1
+    # Every verified loop is measured densely; so is every odometry pair of the sparse front-end
+    # (the dense front-end's are dense already: none is measured again, none relocalised here).
+    assert m["dense_pairs"]["loops"] + m["dense_pairs"]["failed"] >= m["loops"]["registered"]
+    odometry = m["pairs"]["odometry"] if frontend == "sparse" else 0
+    assert m["dense_pairs"]["odometry"] + (m["dense_pairs"]["failed"] if frontend == "sparse" else 0) >= odometry
+    assert m["tracking"]["relocalized"] == 0
+    assert a_dense.stats["rmse"] < 0.01, a_dense.stats
+    if frontend == "dense":
+        # auto is sparse pairs for the dense front-end: the same run as keyframe_pairs=sparse.
+        auto, _ = _run(seq, frontend=frontend)
+        torch.testing.assert_close(auto.output.T_wc, orb.output.T_wc, rtol=0, atol=0)

@@ -83,6 +83,15 @@ class GCSlamConfig:
             frame's pose. After a lost frame, a relocalisation or a long gap
             (``motion_prior_max_gap``) the last frame's pose is used.
         motion_prior_max_gap: longest time over which the velocity is continued, seconds.
+        keyframe_pairs: how the pairs of the pose graph (a new keyframe and its reference, a
+            loop) are measured. ``"sparse"``: by their ORB registration, as the paper.
+            ``"dense"`` (beyond the paper): every pair that ORB features registered (the sparse
+            front-end's keyframes, relocalised keyframes, loops) is registered again densely,
+            photometrically and geometrically from that pose, and enters FastGO with the dense
+            correspondences' statistics; where the dense registration fails the ORB one stays.
+            ``"auto"``: ``dense`` with the sparse front-end, ``sparse`` with the dense one (its
+            tracked pairs are dense already, and densely refined loops did not help it: README,
+            "Keyframe pairs registered densely").
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -113,6 +122,7 @@ class GCSlamConfig:
     max_depth: float = 5.0
     motion_prior: str = "constant_velocity"
     motion_prior_max_gap: float = 0.2
+    keyframe_pairs: str = "auto"
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
@@ -130,7 +140,16 @@ class GCSlamConfig:
             raise ConfigError(f"background: expected 'process' or 'thread', got {self.background!r}")
         if self.motion_prior not in ("constant_velocity", "none"):
             raise ConfigError(f"motion_prior: expected 'constant_velocity' or 'none', got {self.motion_prior!r}")
+        if self.keyframe_pairs not in ("auto", "sparse", "dense"):
+            raise ConfigError(f"keyframe_pairs: expected 'auto', 'sparse' or 'dense', got {self.keyframe_pairs!r}")
         check_limits(self)
+
+    @property
+    def dense_pairs(self) -> bool:
+        """Whether ORB-registered pose-graph pairs are registered again densely (``keyframe_pairs``, ``auto`` resolved)."""
+        if self.keyframe_pairs == "auto":
+            return self.frontend is Frontend.SPARSE
+        return self.keyframe_pairs == "dense"
 
     def orb(self) -> ORBConfig:
         """The ORB extractor's settings."""

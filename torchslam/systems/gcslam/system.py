@@ -55,7 +55,7 @@ from ...data.trajectory import Trajectory
 from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
 from ...geometry import PinholeCamera, backproject_depth, project_points, se3_exp, se3_inverse, se3_log, undistorted_rays
-from ...registration.dense import DenseFrame
+from ...registration.dense import DenseFrame, dense_images
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
@@ -373,8 +373,16 @@ class GCSlam:
         self.keyframes.append(
             _TrackKeyframe(kid, frame.index, feats, points[sample], pix, view.dense, points[m].float(), colors)
         )
+        images = None
+        if cfg.dense_pairs:
+            # What the optimiser registers this keyframe's pairs densely with (the dense
+            # front-end's pyramid has them already).
+            images = view.dense.images() if view.dense is not None else dense_images(view.rgb[None], view.depth[None], self.camera, cfg.dense)
+        # The pair to the reference is ORB-registered with the sparse front-end, and after a relocalisation.
+        refine = images is not None and reference is not None and (relocalized or view.dense is None)
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
-                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote)
+                            None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote,
+                            images, refine)
         t_submit = time.perf_counter()
         self._worker.submit(ev)
         if not self._worker.threaded:
@@ -465,6 +473,9 @@ class GCSlam:
             "background": self._worker.background,
             "loops": dict(opt.loops),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
+            # keyframe_pairs=dense: ORB-registered pairs registered again densely, and those where that failed.
+            "keyframe_pairs": self.cfg.keyframe_pairs,
+            "dense_pairs": dict(opt.refined),
             # Accepted loop closures as (earlier, later) sequence frame indices of their keyframes.
             "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
                             for (i, j), kind in zip(opt.pairs, kinds) if kind == "loop"],
