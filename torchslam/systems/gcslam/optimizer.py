@@ -31,7 +31,7 @@ import traceback
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -102,11 +102,6 @@ class Optimizer:
         self.images: list[DenseImages | None] = []
         self._pyramids: OrderedDict[int, DenseFrame] = OrderedDict()
         self.refined = {"odometry": 0, "loops": 0, "failed": 0}
-        # A pair starts at its ORB pose (centimetres off at most): the coarse levels iterate and
-        # the working resolution only measures the statistics. Steps there changed the ATE by
-        # under 0.02 cm on the tuning sequences and cost a quarter of the time (README).
-        its = cfg.dense.iterations
-        self._pair_dense_cfg = replace(cfg.dense, iterations=its[:-1] + (0,)) if len(its) > 1 else cfg.dense
         self.mild = MILDDatabase(cfg.mild)
         self.loops = {"candidates": 0, "registered": 0, "accepted": 0, "rejected": 0}
         self.stage_ms: dict[str, float] = {}
@@ -190,7 +185,7 @@ class Optimizer:
         """
         fi = DenseFrame.cat([self._pyramid(r) for r in refs])
         fj = self._pyramid(kf).expand(len(refs))
-        return register_dense_frames(fi, fj, T_init.to(fj.levels[0].grey.device, torch.float64), self._pair_dense_cfg)
+        return register_dense_frames(fi, fj, T_init.to(fj.levels[0].grey.device, torch.float64), self.cfg.dense)
 
     def optimized(self, res, frame_index: int, ms: float) -> None:
         """Take the result of the per-keyframe FastGO run (``ms``: its share of the time)."""
