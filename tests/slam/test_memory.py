@@ -15,6 +15,7 @@ from torchslam.systems.lockstep import run_lockstep
 from torchslam.systems.memory import (
     BYTES_PER_IMAGE_PIXEL,
     DENSE_BYTES_PER_WORKING_PIXEL,
+    DENSE_PAIR_BYTES_PER_WORKING_PIXEL,
     NISLAM_BYTES_PER_ORTHO_PIXEL,
     InsufficientMemoryError,
     check_memory,
@@ -33,9 +34,14 @@ def test_estimate_counts_pixels_batch_and_pyramid():
     assert estimate_memory(NISlamConfig(), CAM, batch=4).total == 4 * ni.total
     dense = estimate_memory(config_from_dict(GCSlamConfig, {"frontend": "dense"}), CAM)
     assert dense.parts["dense pyramid"] == DENSE_BYTES_PER_WORKING_PIXEL * 320 * 240  # 640x480 halved
-    assert "dense pyramid" not in estimate_memory(GCSlamConfig(), CAM).parts
+    sparse = estimate_memory(GCSlamConfig(), CAM)
+    assert "dense pyramid" not in sparse.parts
+    # Densely registered pose-graph pairs (the sparse front-end's default) add the optimiser's pyramids.
+    assert sparse.parts["dense keyframe pairs"] == DENSE_PAIR_BYTES_PER_WORKING_PIXEL * 320 * 240
+    assert "dense keyframe pairs" not in dense.parts
+    assert "dense keyframe pairs" not in estimate_memory(GCSlamConfig(keyframe_pairs="sparse"), CAM).parts
     # The default configurations need a fraction of a gigabyte.
-    assert ni.total < 0.3e9 and dense.total < 0.3e9
+    assert ni.total < 0.3e9 and dense.total < 0.3e9 and sparse.total < 0.3e9
 
 
 def test_huge_orthographic_image_is_refused_with_the_figure():

@@ -41,6 +41,7 @@ __all__ = [
     "RegistrationTarget",
     "SparseFrontend",
     "TrackingFrontend",
+    "dense_working_pixels",
     "frontend_class",
     "make_frontend",
 ]
@@ -189,10 +190,15 @@ class DenseFrontend(TrackingFrontend):
     @staticmethod
     def memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
         """The dense working pyramid."""
-        factor = max(1, round(camera.width / cfg.dense.width))
-        working = (camera.width // factor) * (camera.height // factor)
+        working = dense_working_pixels(cfg, camera)
         return {"dense pyramid": (DENSE_BYTES_PER_WORKING_PIXEL * working * batch,
                                   f"image {camera.width}x{camera.height}, dense.width = {cfg.dense.width}")}
+
+
+def dense_working_pixels(cfg: GCSlamConfig, camera: PinholeCamera) -> int:
+    """Pixels of the dense working resolution (the image reduced by ``round(W / dense.width)``)."""
+    factor = max(1, round(camera.width / cfg.dense.width))
+    return (camera.width // factor) * (camera.height // factor)
 
 
 _FRONTENDS: dict[Frontend, type[TrackingFrontend]] = {Frontend.SPARSE: SparseFrontend, Frontend.DENSE: DenseFrontend}

@@ -59,10 +59,11 @@ from ...registration.dense import DenseFrame, dense_images
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
+from ..memory import DENSE_PAIR_BYTES_PER_WORKING_PIXEL
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
 from .config import GCSlamConfig
-from .frontend import PreparedFrame, Registration, TrackingFrontend, frontend_class, make_frontend
+from .frontend import PreparedFrame, Registration, TrackingFrontend, dense_working_pixels, frontend_class, make_frontend
 from .optimizer import Anchor, KeyframeEvent, Optimizer, ProcessWorker, Worker, make_worker
 
 __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframes", "track_frames"]
@@ -588,8 +589,13 @@ def insert_keyframe(optimizer: Optimizer, event: KeyframeEvent) -> None:
 
 
 def _memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
-    """The front-end's working memory (``systems.memory``): the dense pyramid; the sparse one adds nothing."""
-    return frontend_class(cfg.frontend).memory(cfg, camera, batch)
+    """The front-end's working memory (``systems.memory``): the dense pyramid (the sparse one adds
+    nothing), and the optimiser's pyramids where pose-graph pairs are registered densely."""
+    parts = frontend_class(cfg.frontend).memory(cfg, camera, batch)
+    if cfg.dense_pairs:
+        parts["dense keyframe pairs"] = (DENSE_PAIR_BYTES_PER_WORKING_PIXEL * dense_working_pixels(cfg, camera) * batch,
+                                         f"keyframe_pairs = {cfg.keyframe_pairs}, dense.width = {cfg.dense.width}")
+    return parts
 
 
 SPEC = SystemSpec(
