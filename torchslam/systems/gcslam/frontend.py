@@ -20,6 +20,7 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
@@ -29,8 +30,8 @@ from torch import Tensor
 
 from ...fastgo import PairStats
 from ...geometry import PinholeCamera
-from ...registration.dense import DenseFrame, prepare_dense_frame, register_dense_frames
-from ...registration.sparse import FrameFeatures, frame_features, register_sparse, register_sparse_batch
+from ...registration.dense import DenseFrame, DenseResult, prepare_dense_frame, register_dense_frames
+from ...registration.sparse import FrameFeatures, SparseResult, frame_features, register_sparse, register_sparse_batch
 from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
 from .config import Frontend, GCSlamConfig
 
@@ -78,14 +79,20 @@ class Registration:
     Attributes:
         ok: the registration succeeded (enough inliers or correspondences).
         T_kf: (4, 4) float64 frame pose in the keyframe, ``p_kf = T_kf p_frame``.
-        stats: FastGO statistics of its correspondences (one pair; points in keyframe and frame).
+        result: the registration of the pair (a batch of one; its ``stats`` are read on first use).
         correspondences: inliers (sparse) or correspondences (dense) kept.
     """
 
     ok: bool
     T_kf: Tensor
-    stats: PairStats
+    result: SparseResult | DenseResult
     correspondences: int
+
+    @functools.cached_property
+    def stats(self) -> PairStats:
+        """FastGO statistics of its correspondences (one pair; points in keyframe and frame),
+        computed where the dense front-end has not yet: only a frame that becomes a keyframe needs them."""
+        return self.result.stats
 
 
 class TrackingFrontend:
@@ -162,11 +169,11 @@ class SparseFrontend(TrackingFrontend):
         cfg = self.cfg.sparse
         if cfg.guided_radius <= 0:
             res = register_sparse(keyframe.features, frame.features, cfg, self.generator)
-            return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0]))
+            return Registration(bool(res.success[0]), res.T_ij[0], res, int(res.num_inliers[0]))
         res = register_sparse_batch([keyframe.features], [frame.features], cfg, self.generator,
                                     T_pred=T_guess.to(torch.float64)[None], focal=self.camera.fx)
         self.counts["guided" if bool(res.guided[0]) else "fallback"] += 1
-        return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_inliers[0]))
+        return Registration(bool(res.success[0]), res.T_ij[0], res, int(res.num_inliers[0]))
 
 
 class DenseFrontend(TrackingFrontend):
@@ -185,7 +192,7 @@ class DenseFrontend(TrackingFrontend):
 
     def register(self, keyframe: RegistrationTarget, frame: PreparedFrame, T_guess: Tensor) -> Registration:
         res = register_dense_frames(keyframe.dense, frame.dense, T_guess[None], self.cfg.dense)
-        return Registration(bool(res.success[0]), res.T_ij[0], res.stats, int(res.num_correspondences[0]))
+        return Registration(bool(res.success[0]), res.T_ij[0], res, int(res.num_correspondences[0]))
 
     @staticmethod
     def memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
