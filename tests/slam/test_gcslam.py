@@ -124,7 +124,7 @@ def test_planted_false_loop_is_rejected_and_true_loop_accepted(monkeypatch):
             Tk0 = se3_inverse(T_true)  # frame 0 -> frame n-1
             pk = p0 @ Tk0[:3, :3].T + Tk0[:3, 3] + offset
             stats = PairStats.from_padded(p0, pk)
-            return type("R", (), {"success": torch.tensor([True]), "stats": stats})()
+            return type("R", (), {"success": torch.tensor([True]), "stats": stats, "T_ij": T_true[None]})()
         return register
 
     T_0k = se3_inverse(T_gt[0]) @ T_gt[n - 1]

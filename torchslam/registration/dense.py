@@ -390,15 +390,26 @@ class DenseImages:
     def __len__(self) -> int:
         return self.grey.shape[0]
 
-    def to(self, device: torch.device | str) -> DenseImages:
-        """The images on ``device``."""
-        inside = None if self.inside is None else self.inside.to(device)
-        return DenseImages(self.grey.to(device), self.depth.to(device), inside, self.camera, self.cfg)
-
     def pyramid(self) -> DenseFrame:
         """The prepared frames (:func:`prepare_dense_frame` of the original images)."""
-        inside = torch.ones_like(self.grey) if self.inside is None else self.inside
-        return _pyramid(self.grey, self.depth, inside, self.camera, self.cfg)
+        cfg, camera, grey, depth = self.cfg, self.camera, self.grey, self.depth
+        inside = torch.ones_like(grey) if self.inside is None else self.inside
+        k = max(1, round(camera.width / cfg.width))
+        cam = replace(_level_camera(camera, 1.0 / k, grey.shape[-1], grey.shape[-2]), distortion=None)
+        distorted = camera.has_distortion
+        levels = [_build_level(cam, grey, depth, inside, cfg)]
+        for _ in range(1, cfg.levels):
+            h2, w2 = grey.shape[-2] // 2, grey.shape[-1] // 2
+            grey = _pyrdown(_crop(grey, 2 * h2, 2 * w2))
+            depth = _reduce_depth(_crop(depth, 2 * h2, 2 * w2), 2, cfg.depth_merge_tolerance)
+            if distorted:
+                # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
+                inside = (_pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
+            else:
+                inside = torch.ones_like(grey)
+            cam = _level_camera(cam, 0.5, w2, h2)
+            levels.append(_build_level(cam, grey, depth, inside, cfg))
+        return DenseFrame(tuple(levels), camera, cfg)
 
 
 def _check_compatible(a: DenseFrame, b: DenseFrame, name: str) -> None:
@@ -605,27 +616,6 @@ def _working_images(rgb: Tensor, depth: Tensor, camera: PinholeCamera, cfg: Dens
     if camera.has_distortion:
         grey, depth, inside = _undistort(grey, depth, _level_camera(camera, 1.0 / k, w, h))
     return DenseImages(grey, depth, inside, camera, cfg)
-
-
-def _pyramid(grey: Tensor, depth: Tensor, inside: Tensor, camera: PinholeCamera, cfg: DenseConfig) -> DenseFrame:
-    """The pyramid of working-resolution images (``inside`` all ones without distortion)."""
-    H, W = camera.height, camera.width
-    k = max(1, round(W / cfg.width))
-    cam = replace(_level_camera(camera, 1.0 / k, W // k, H // k), distortion=None)
-    distorted = camera.has_distortion
-    levels = [_build_level(cam, grey, depth, inside, cfg)]
-    for _ in range(1, cfg.levels):
-        h2, w2 = grey.shape[-2] // 2, grey.shape[-1] // 2
-        grey = _pyrdown(_crop(grey, 2 * h2, 2 * w2))
-        depth = _reduce_depth(_crop(depth, 2 * h2, 2 * w2), 2, cfg.depth_merge_tolerance)
-        if distorted:
-            # pyrdown's blur reaches 2 pixels: a coarse pixel is inside only if all it averaged was.
-            inside = (_pyrdown(_crop(inside, 2 * h2, 2 * w2)) >= _ALL_SET).to(grey.dtype)
-        else:
-            inside = torch.ones_like(grey)
-        cam = _level_camera(cam, 0.5, w2, h2)
-        levels.append(_build_level(cam, grey, depth, inside, cfg))
-    return DenseFrame(tuple(levels), camera, cfg)
 
 
 def _undistort(grey: Tensor, depth: Tensor, cam: PinholeCamera) -> tuple[Tensor, Tensor, Tensor]:

@@ -140,13 +140,9 @@ class Optimizer:
             T_ref_kf, stats = ev.T_ref_kf.to(torch.float64), ev.stats.to("cpu", torch.float64)
             if ev.refine:
                 t0 = time.perf_counter()
-                if self.has_images([ev.reference, ev.kf]):
-                    dense = self.register_dense([ev.reference], ev.kf, T_ref_kf[None])
-                    if bool(dense.success[0]):
-                        T_ref_kf, stats = dense.T_ij[0].to("cpu", torch.float64), dense.stats.to("cpu", torch.float64)
-                        self.refined["odometry"] += 1
-                    else:
-                        self.refined["failed"] += 1
+                (measured,) = self.measure_densely([ev.reference], ev.kf, T_ref_kf[None], "odometry")
+                if measured is not None:
+                    T_ref_kf, stats = measured
                 self._add_ms("pair_refinement", t0)
             self.T_wk.append(self.T_wk[ev.reference] @ T_ref_kf)
             self.pairs.append((ev.reference, ev.kf))
@@ -173,19 +169,25 @@ class Optimizer:
         self._pyramids.move_to_end(k)
         return pyr
 
-    def has_images(self, keyframes: list[int]) -> bool:
-        """Whether all these keyframes have working images (their pairs can be registered densely)."""
-        return all(k < len(self.images) and self.images[k] is not None for k in keyframes)
-
-    def register_dense(self, refs: list[int], kf: int, T_init: Tensor):
+    def measure_densely(self, refs: list[int], kf: int, T_init: Tensor, kind: str) -> list[tuple[Tensor, PairStats] | None]:
         """Register keyframe ``kf`` densely to each of the keyframes ``refs`` from ``T_init`` (R, 4, 4), ``p_ref = T p_kf``.
 
-        Returns the :class:`~torchslam.registration.dense.DenseResult` of the R pairs (every
-        keyframe must have images, :meth:`has_images`).
+        Returns per pair its float64 CPU pose and statistics, or None where it is not measured
+        densely (a keyframe without images) or the registration failed; successes are counted
+        in ``refined[kind]``, failures in ``refined["failed"]``.
         """
+        if not all(k < len(self.images) and self.images[k] is not None for k in refs + [kf]):
+            return [None] * len(refs)
         fi = DenseFrame.cat([self._pyramid(r) for r in refs])
         fj = self._pyramid(kf).expand(len(refs))
-        return register_dense_frames(fi, fj, T_init.to(fj.levels[0].grey.device, torch.float64), self.cfg.dense)
+        res = register_dense_frames(fi, fj, T_init.to(fj.levels[0].grey.device, torch.float64), self.cfg.dense)
+        out: list[tuple[Tensor, PairStats] | None] = []
+        for k in range(len(refs)):
+            ok = bool(res.success[k])
+            self.refined[kind if ok else "failed"] += 1
+            out.append((res.T_ij[k].to("cpu", torch.float64), res.stats[torch.tensor([k], device=res.stats.device)].to("cpu", torch.float64))
+                       if ok else None)
+        return out
 
     def optimized(self, res, frame_index: int, ms: float) -> None:
         """Take the result of the per-keyframe FastGO run (``ms``: its share of the time)."""
@@ -209,16 +211,11 @@ class Optimizer:
             return
         self.loops["registered"] += len(ok)
         pair_stats = {b: res.stats[torch.tensor([b], device=res.stats.device)].to("cpu", torch.float64) for b in ok}
-        refs = [candidates[b] for b in ok]
-        if self.has_images(refs + [kf]):
+        if cfg.dense_pairs:
             # Each verified loop measured again densely from its ORB pose; a failure keeps the ORB one.
-            dense = self.register_dense(refs, kf, res.T_ij[ok].to(torch.float64))
-            for k, b in enumerate(ok):
-                if bool(dense.success[k]):
-                    pair_stats[b] = dense.stats[torch.tensor([k], device=dense.stats.device)].to("cpu", torch.float64)
-                    self.refined["loops"] += 1
-                else:
-                    self.refined["failed"] += 1
+            for b, m in zip(ok, self.measure_densely([candidates[b] for b in ok], kf, res.T_ij[ok], "loops")):
+                if m is not None:
+                    pair_stats[b] = m[1]
             t0 = self._add_ms("pair_refinement", t0)
         # All verified candidates are tested together; if that is rejected, each on its own, so
         # one false candidate does not take the true ones down with it.
