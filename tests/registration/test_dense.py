@@ -523,6 +523,40 @@ def test_host_update_of_one_pair_equals_the_batched_one():
             assert one[2].tolist() == batched[2][b : b + 1].tolist(), b
     assert batched[1].tolist() == [False] * 5 and dense_module._update_numpy(H, grad, T, torch.ones(5, dtype=torch.bool), 1e-3)[1].tolist() == [True, True, False, False, False]
 
+def test_host_scales_and_single_pair_loop_match_the_device_path(synthetic):
+    """The CPU paths (the t-distribution scales in NumPy, one pair's iterations with Python
+    bookkeeping) take the device path's decisions: the same steps, poses to 1e-7 m, scales to
+    float round-off, including a pair with no valid residual (the floors)."""
+    cam, rgb, depth, _ = synthetic
+    cfg = DenseConfig()
+    g = torch.Generator().manual_seed(5)
+    rn = torch.randn(3, 2, 4000, generator=g) * torch.tensor([0.02, 0.005])[:, None]
+    m = torch.rand(3, 2, 4000, generator=g) > 0.3
+    m[2] = False
+    rn = rn * m
+    start = torch.tensor([[0.03, 0.004], [0.01, 0.01], [0.02, 0.002]])
+    for st in (None, start):
+        host = dense_module._scale(rn, m, dense_module.DenseRobust.STUDENT_T, cfg, st)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+            dev = dense_module._scale(rn, m, dense_module.DenseRobust.STUDENT_T, cfg, st)
+        torch.testing.assert_close(host, dev, rtol=1e-5, atol=0)
+        assert host.dtype == dev.dtype == rn.dtype
+        # No valid residual: the floors.
+        torch.testing.assert_close(host[2], torch.tensor([cfg.sigma_floor_photometric, cfg.sigma_floor_geometric]))
+    fi = prepare_dense_frame(rgb[:1], depth[:1], cam, cfg)
+    fj = prepare_dense_frame(rgb[1:], depth[1:], cam, cfg)
+    T_init = se3_exp(torch.tensor([[0.01, 0.0, 0.0, 0.0, 0.01, 0.0], [0.0] * 6], dtype=F64))
+    for b in range(2):
+        host = register_dense_frames(fi, fj[b], T_init[b], cfg)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+            dev = register_dense_frames(fi, fj[b], T_init[b], cfg)
+        assert host.iterations.tolist() == dev.iterations.tolist() and int(host.iterations[0]) > 2
+        torch.testing.assert_close(host.T_ij, dev.T_ij, rtol=0, atol=1e-7)
+        assert host.num_correspondences.tolist() == dev.num_correspondences.tolist()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_pyrdown_matches_kornia(dtype):
     x = torch.rand(2, 3, 24, 34, generator=torch.Generator().manual_seed(1), dtype=dtype)

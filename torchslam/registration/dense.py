@@ -772,6 +772,8 @@ def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: 
     if robust is DenseRobust.HUBER:
         med = torch.where(m, rn.abs(), torch.full_like(rn, float("nan"))).nanmedian(dim=-1).values
         return torch.maximum(_MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
+    if _host(rn):
+        return _scale_numpy(rn, m, cfg, floor, start)
     nu = cfg.student_t_dof
     n = m.sum(-1).clamp_min(1).to(rn.dtype)
     r2 = rn * rn  # 0 where invalid, and so are all the terms summed below
@@ -783,6 +785,27 @@ def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: 
         t = (r2 / (r2 + (nu * var)[..., None])).sum(-1)
         var = torch.maximum(t * var * ((nu + 1) / n), floor2)
     return var.sqrt()
+
+
+def _scale_numpy(rn: Tensor, m: Tensor, cfg: DenseConfig, floor: Tensor, start: Tensor | None) -> Tensor:
+    """The t-distribution scales of :func:`_scale` in NumPy (CPU tensors), the same float
+    arithmetic with reductions in NumPy's order: its fixed-point loop is a few passes over a few
+    thousand residuals at the coarse levels, where torch's fixed cost per operation was most of
+    the time (about 50 operations a call)."""
+    r = rn.numpy()
+    dt = r.dtype.type
+    nu = dt(cfg.student_t_dof)
+    n = np.maximum(m.numpy().sum(-1), 1).astype(dt)
+    floor2 = floor.numpy() ** 2
+    r2 = r * r  # 0 where invalid, and so are all the terms summed below
+    var = r2.sum(-1) / n if start is None else start.numpy() ** 2
+    var = np.maximum(var, floor2)
+    buf = np.empty_like(r2)
+    for _ in range(_SCALE_ITERATIONS):
+        np.add(r2, (nu * var)[..., None], out=buf)
+        np.divide(r2, buf, out=buf)
+        var = np.maximum(buf.sum(-1) * var * ((nu + dt(1)) / n), floor2)
+    return torch.from_numpy(np.sqrt(var))
 
 
 def _weight(e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
@@ -836,6 +859,60 @@ def _normal_equations(
     chunks = min(_GRAM_CHUNKS, -(-2 * N // _GRAM_CHUNK_MIN))
     G = sum(torch.bmm(a, b.transpose(1, 2)).double() for a, b in zip(Aw.tensor_split(chunks, -1), A.tensor_split(chunks, -1)))
     return G[:, :6, :6], G[:, :6, 6]
+
+
+def _linear_system(
+    wp: _Warp, cam: PinholeCamera, e2: Tensor, s: Tensor, robust: DenseRobust, cfg: DenseConfig
+) -> tuple[Tensor, Tensor]:
+    """(B, 6, 6) ``H`` and (B, 6) ``g`` of a warp: :func:`_jacobian_rows` and
+    :func:`_normal_equations`, on the CPU in NumPy (:func:`_linear_system_numpy`)."""
+    if _host(e2):
+        return _linear_system_numpy(wp, cam, e2, s, robust, cfg)
+    return _normal_equations(wp, _jacobian_rows(wp, cam), e2, s, robust, cfg)
+
+
+def _linear_system_numpy(
+    wp: _Warp, cam: PinholeCamera, e2: Tensor, s: Tensor, robust: DenseRobust, cfg: DenseConfig
+) -> tuple[Tensor, Tensor]:
+    """:func:`_jacobian_rows` and :func:`_normal_equations` in NumPy (CPU tensors): the same
+    float32 rows and chunked float32 Gram products summed in float64, written into preallocated
+    rows. At the coarse levels (a few thousand pixels) torch's fixed cost per operation was most
+    of these forty-odd operations' time."""
+    q, smp, cn, iz, rn = wp.q.numpy(), wp.sample.numpy(), wp.cn.numpy(), wp.iz.numpy()[:, None], wp.rn.numpy()
+    dt = q.dtype.type
+    B, _, N = q.shape
+    x, y, z = q[:, 0:1], q[:, 1:2], q[:, 2:3]
+    A = np.empty((B, 7, 2, N), dtype=q.dtype)
+    g0, g1, g2 = A[:, 0], A[:, 1], A[:, 2]
+    ciz = cn * iz
+    np.multiply(smp[:, _GX : _ZX + 1], ciz, out=g0)
+    g0 *= dt(cam.fx)
+    np.multiply(smp[:, _GY : _ZY + 1], ciz, out=g1)
+    g1 *= dt(cam.fy)
+    np.multiply(g0, x, out=g2)
+    g2 += g1 * y
+    g2 *= -iz
+    g2[:, 1] -= cn[:, 1]
+    np.subtract(y * g2, z * g1, out=A[:, 3])
+    np.subtract(z * g0, x * g2, out=A[:, 4])
+    np.subtract(x * g1, y * g0, out=A[:, 5])
+    A[:, 6] = rn
+    e = e2.numpy()
+    if robust is DenseRobust.HUBER:
+        k = dt(cfg.huber_k)
+        W = np.minimum(k / np.maximum(np.sqrt(e), k), dt(1.0))
+    else:
+        nu = dt(cfg.student_t_dof)
+        W = np.reciprocal(e + nu)
+        W *= nu + dt(1)
+    W *= wp.m.numpy()
+    sc = s.numpy()
+    W *= (_term_weights(cfg, s).numpy() / (sc * sc))[..., None]
+    A = A.reshape(B, 7, 2 * N)
+    Aw = A * W.reshape(B, 1, 2 * N)
+    chunks = min(_GRAM_CHUNKS, -(-2 * N // _GRAM_CHUNK_MIN))
+    G = sum((a @ b.transpose(0, 2, 1)).astype(np.float64) for a, b in zip(np.array_split(Aw, chunks, -1), np.array_split(A, chunks, -1)))
+    return torch.from_numpy(np.ascontiguousarray(G[:, :6, :6])), torch.from_numpy(np.ascontiguousarray(G[:, :6, 6]))
 
 
 # ---------------------------------------------------------------------------- correspondences
@@ -1117,6 +1194,12 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
 def _update_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: float) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_update_numpy` for one pair (tracking), without its batch bookkeeping: ``H`` is
     positive definite when its Cholesky factorisation exists."""
+    T_new, step, small = _step_one(H, g, T, active, tol)
+    return T_new, torch.tensor([step]), torch.tensor([small])
+
+
+def _step_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: float) -> tuple[Tensor, bool, bool]:
+    """:func:`_update_one` with the flags as Python bools (the (1, 4, 4) pose a tensor)."""
     delta = None
     if np.isfinite(H).all():
         try:
@@ -1130,7 +1213,7 @@ def _update_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: 
     step = active and solved
     T_new = _se3_exp_one(delta) @ T if step else T
     small = math.sqrt(float(delta @ delta)) < tol
-    return torch.from_numpy(T_new[None]), torch.tensor([step]), torch.tensor([small])
+    return torch.from_numpy(T_new[None]), step, small
 
 
 def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
@@ -1227,6 +1310,31 @@ def _select_pixels(lv: DenseLevel, step: int) -> _Pixels:
     return _Pixels(lv.grey.reshape(B, -1).gather(1, idx), lv.points.gather(1, idx[..., None].expand(B, M, 3)), valid)
 
 
+def _iterate_one(
+    li: DenseLevel, lj: _Pixels, T: Tensor, n_iter: int, tol: float, cfg: DenseConfig, robust: DenseRobust
+) -> tuple[Tensor, int]:
+    """:func:`_register`'s iterations at one level for a single pair on the CPU (tracking): the
+    same tensor arithmetic and decisions, with the bookkeeping (undone steps, stopping, the step
+    count) in Python scalars instead of (1,)-tensors, whose fixed cost per operation was a
+    measurable share of a coarse iteration. Returns the pose and the steps kept."""
+    kept, T_prev, prev_cost, s = 0, T, 0.0, None
+    for _ in range(n_iter):
+        wp = _warp(li, lj, T, cfg.min_depth, cfg.geometric_depth_power)
+        # DVO: a step that raised the cost (scales frozen) is undone and the pair stops.
+        if s is not None and float(_cost(wp, _scaled_sq(wp, s), robust, cfg)) > prev_cost:
+            return T_prev, kept - 1
+        s = _scale(wp.rn, wp.m, robust, cfg, s)
+        e2 = _scaled_sq(wp, s)
+        prev_cost = float(_cost(wp, e2, robust, cfg))
+        H, g = _linear_system(wp, li.camera, e2, s, robust, cfg)
+        T_prev = T
+        T, step, small = _step_one(H[0].numpy(), g[0].numpy(), T[0].numpy(), True, tol)
+        kept += step
+        if not step or small:
+            break
+    return T, kept
+
+
 def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> DenseResult:
     robust = DenseRobust.parse(cfg.robust)
     B = len(fi)
@@ -1236,6 +1344,10 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
     for level, n_iter in zip(reversed(range(cfg.levels)), cfg.iterations):
         li, lj = fi.levels[level], fj.levels[level]
         lj = _select_pixels(lj, cfg.finest_pixel_step if level == 0 else 1)
+        if host and B == 1:
+            T, kept = _iterate_one(li, lj, T, n_iter, cfg.tol if level else cfg.finest_tol, cfg, robust)
+            iterations += kept
+            continue
         active = torch.ones(B, dtype=torch.bool, device=T.device)
         T_prev, prev_cost, s = T, None, None
         for _ in range(n_iter):
@@ -1254,7 +1366,7 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
             s = _scale(wp.rn, wp.m, robust, cfg, s)
             e2 = _scaled_sq(wp, s)
             prev_cost = _cost(wp, e2, robust, cfg)
-            H, g = _normal_equations(wp, _jacobian_rows(wp, li.camera), e2, s, robust, cfg)
+            H, g = _linear_system(wp, li.camera, e2, s, robust, cfg)
             T_prev = T
             T, step, small = _gauss_newton_update(H, g, T, active, cfg.tol if level else cfg.finest_tol)
             iterations = iterations + step.to(torch.int64)
