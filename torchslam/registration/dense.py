@@ -686,6 +686,8 @@ def _warp(
 ) -> _Warp:
     """Warp frame j's pixels into frame i at ``T_ij``; without ``gradients`` only the first
     ``_VALUE_CHANNELS`` reference channels are sampled (no Jacobian can be built from it)."""
+    if _host(T_ij) and not (T_ij.requires_grad or lj.points.requires_grad or li.grey.requires_grad or li.depth.requires_grad):
+        return _warp_numpy(li, lj, T_ij, min_depth, depth_power, gradients)
     dtype = li.grey.dtype
     B, _, h, w = li.grey.shape
     T = T_ij.to(dtype)
@@ -717,6 +719,58 @@ def _warp(
         c_Z = torch.ones_like(iz)
     cn = torch.stack([torch.ones_like(c_Z), c_Z], dim=1).mul_(m)
     return _Warp(q, uv, s, r, r * cn, cn, m, iz)
+
+
+def _warp_numpy(
+    li: DenseLevel, lj: DenseLevel | _Pixels, T_ij: Tensor, min_depth: float, depth_power: float, gradients: bool
+) -> _Warp:
+    """:func:`_warp` on the CPU: the per-pixel arithmetic in NumPy (the same float32 operations
+    in the same order), the bilinear samples by ``grid_sample`` as there; the warp's tensors
+    share the arrays' memory. At the coarse levels torch's fixed cost per operation was most of
+    the warp's thirty-odd operations."""
+    B, _, h, w = li.grey.shape
+    dt = li.grey.numpy().dtype.type
+    T = T_ij.numpy().astype(dt)
+    q = np.matmul(T[:, :3, :3], lj.points.numpy().transpose(0, 2, 1))
+    q += T[:, :3, 3:]
+    x, y, z = q[:, 0], q[:, 1], q[:, 2]
+    front = lj.valid.numpy() & (z > dt(min_depth))
+    iz = np.reciprocal(np.where(front, z, dt(1.0)))
+    cam = li.camera
+    uv = np.empty((B, 2, z.shape[-1]), dtype=dt)
+    u, v = uv[:, 0], uv[:, 1]
+    np.multiply(x, iz, out=u)
+    u *= dt(cam.fx)
+    u += dt(cam.cx)
+    np.multiply(y, iz, out=v)
+    v *= dt(cam.fy)
+    v += dt(cam.cy)
+    inside = front & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
+    # Points that miss the image are clamped onto it so every sample stays finite (they are masked).
+    np.clip(u, 0, w - 1, out=u)
+    np.clip(v, 0, h - 1, out=v)
+    grid = np.empty((B, z.shape[-1], 1, 2), dtype=dt)
+    np.multiply(u, dt(2.0 / (w - 1)), out=grid[:, :, 0, 0])
+    np.multiply(v, dt(2.0 / (h - 1)), out=grid[:, :, 0, 1])
+    grid -= dt(1.0)
+    ref = li.reference if gradients else li.reference[:, :_VALUE_CHANNELS]
+    s = F.grid_sample(ref, torch.from_numpy(grid), mode="bilinear", padding_mode="border", align_corners=True)[..., 0]
+    sn = s.numpy()
+    m = np.empty((B, 2, z.shape[-1]), dtype=bool)
+    np.logical_and(inside, sn[:, _IOK] >= dt(_ALL_SET), out=m[:, 0])
+    np.logical_and(m[:, 0], sn[:, _ZOK] >= dt(_ALL_SET), out=m[:, 1])
+    r = sn[:, _GREY : _Z + 1] - np.stack([lj.grey.numpy().reshape(B, -1), z], axis=1)
+    r *= m
+    if depth_power == 2.0:
+        c_Z = iz * iz
+    elif depth_power:
+        c_Z = iz ** dt(depth_power)
+    else:
+        c_Z = np.ones_like(iz)
+    cn = np.stack([np.ones_like(c_Z), c_Z], axis=1)
+    cn *= m
+    t = torch.from_numpy
+    return _Warp(t(q), t(uv), s, t(r), t(r * cn), t(cn), t(m), t(iz))
 
 
 def _jacobian_rows(wp: _Warp, cam: PinholeCamera) -> Tensor:
@@ -772,7 +826,7 @@ def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: 
     if robust is DenseRobust.HUBER:
         med = torch.where(m, rn.abs(), torch.full_like(rn, float("nan"))).nanmedian(dim=-1).values
         return torch.maximum(_MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
-    if _host(rn):
+    if _host(rn) and not rn.requires_grad:
         return _scale_numpy(rn, m, cfg, floor, start)
     nu = cfg.student_t_dof
     n = m.sum(-1).clamp_min(1).to(rn.dtype)
@@ -834,12 +888,23 @@ def _term_weights(cfg: DenseConfig, like: Tensor) -> Tensor:
 
 def _scaled_sq(wp: _Warp, s: Tensor) -> Tensor:
     """(B, 2, N) squared residuals in units of their robust scales ``s`` (B, 2)."""
+    if _host(s) and not (s.requires_grad or wp.rn.requires_grad):
+        e = wp.rn.numpy() / s.numpy()[..., None]
+        return torch.from_numpy(np.multiply(e, e, out=e))
     return (wp.rn / s[..., None]).square_()
 
 
 def _cost(wp: _Warp, e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
     """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one
     (``e2`` from :func:`_scaled_sq`)."""
+    if _host(e2) and not e2.requires_grad and robust is DenseRobust.STUDENT_T:
+        # The same float32 arithmetic in NumPy (the CPU's per-operation cost, as _scale_numpy).
+        e = e2.numpy()
+        dt = e.dtype.type
+        nu = cfg.student_t_dof
+        rho = np.log1p(e * dt(1.0 / nu))
+        mean = rho.sum(-1) * dt(0.5 * (nu + 1)) / np.maximum(wp.m.numpy().sum(-1), 1).astype(dt)
+        return torch.from_numpy((mean * _term_weights(cfg, e2).numpy()).sum(-1).astype(np.float64))
     # Invalid residuals are 0 and cost 0: a plain sum over the pixels is the masked sum.
     mean = _rho(e2, robust, cfg).sum(-1) / wp.m.sum(-1).clamp_min(1)
     return (mean * _term_weights(cfg, mean)).sum(-1).double()
@@ -866,7 +931,7 @@ def _linear_system(
 ) -> tuple[Tensor, Tensor]:
     """(B, 6, 6) ``H`` and (B, 6) ``g`` of a warp: :func:`_jacobian_rows` and
     :func:`_normal_equations`, on the CPU in NumPy (:func:`_linear_system_numpy`)."""
-    if _host(e2):
+    if _host(e2) and not (e2.requires_grad or wp.rn.requires_grad or wp.sample.requires_grad):
         return _linear_system_numpy(wp, cam, e2, s, robust, cfg)
     return _normal_equations(wp, _jacobian_rows(wp, cam), e2, s, robust, cfg)
 
