@@ -14,6 +14,7 @@ from torchslam.geometry import (
     se3_adjoint,
     se3_compose,
     se3_exp,
+    se3_exp_numpy,
     se3_inverse,
     se3_log,
     skew,
@@ -158,3 +159,19 @@ def test_bad_input_raises():
         so3_exp(torch.zeros(3, dtype=torch.int64))
     with pytest.raises(ShapeError, match="points_b"):
         se3_act(torch.eye(4), torch.zeros(5, 2))
+
+
+@pytest.mark.parametrize("scale", [1e-7, 1e-3, 0.05, 0.3, 2.0])
+def test_se3_exp_numpy_matches_se3_exp(scale):
+    """The host exponential (batched, and one twist in scalars) equals ``se3_exp`` to round-off
+    on both sides of the small-angle switch, and is a rigid motion."""
+    g = torch.Generator().manual_seed(11)
+    xi = torch.randn(6, 6, generator=g, dtype=torch.float64) * scale
+    ref = se3_exp(xi).numpy()
+    batched = se3_exp_numpy(xi.numpy())
+    single = np.stack([se3_exp_numpy(x[None])[0] for x in xi.numpy()])
+    np.testing.assert_allclose(batched, ref, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(single, ref, rtol=0, atol=1e-15)
+    R = single[:, :3, :3]
+    np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
+    assert (single[:, 3] == [0.0, 0.0, 0.0, 1.0]).all()

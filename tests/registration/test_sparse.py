@@ -342,6 +342,30 @@ def test_refine_equals_weighted_kabsch_in_the_quadratic_zone():
     torch.testing.assert_close(rmse, ((r**2 * mask).sum(-1) / mask.sum(-1)).sqrt())
 
 
+def test_host_refinement_matches_the_device_path(monkeypatch):
+    """The CPU refinement in NumPy takes the torch path's steps: the same inliers and poses to
+    round-off, outliers, masked matches and a degenerate pair (kept pose) included."""
+    import torchslam.registration.sparse as sparse_module
+
+    g = torch.Generator().manual_seed(9)
+    B, M = 4, 300
+    T = torch.stack([_random_pose(g) for _ in range(B)])
+    p_i, p_j, _ = _planted(g, B, M, T, outlier_frac=0.3, noise=0.003)
+    mask = torch.rand(B, M, generator=g) > 0.1
+    mask[3] = False
+    mask[3, :2] = True  # degenerate: keeps its pose
+    T_init = se3_exp(0.003 * torch.randn(B, 6, generator=g, dtype=F64)) @ T
+    cfg = SparseConfig()
+    host = refine_rigid(p_i, p_j, mask, T_init, cfg)
+    monkeypatch.setattr(sparse_module, "numpy_viewable", lambda x: False)
+    dev = refine_rigid(p_i, p_j, mask, T_init, cfg)
+    torch.testing.assert_close(host[0], dev[0], rtol=0, atol=1e-12)
+    assert torch.equal(host[1], dev[1])
+    torch.testing.assert_close(host[2], dev[2], rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(host[0][3], T_init[3], rtol=0, atol=1e-12)
+    assert int(host[1][:3].sum()) > 500, int(host[1][:3].sum())  # the planted inliers are found
+
+
 def test_refine_keeps_the_pose_of_a_degenerate_pair():
     g = torch.Generator().manual_seed(8)
     T = _random_pose(g)[None]

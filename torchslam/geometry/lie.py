@@ -12,6 +12,9 @@ divisor is made safe *before* dividing so gradients stay finite at the identity.
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -24,6 +27,7 @@ __all__ = [
     "so3_log",
     "so3_angle",
     "se3_exp",
+    "se3_exp_numpy",
     "se3_log",
     "se3_inverse",
     "se3_compose",
@@ -308,3 +312,57 @@ def se3_adjoint(T: Tensor) -> Tensor:
     Ad[..., 3:, 3:] = R
     Ad[..., :3, 3:] = _skew(t) @ R
     return Ad
+
+
+def se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
+    """(B, 4, 4) ``exp`` of (B, 6) float64 twists ``(rho, phi)`` in NumPy, as :func:`se3_exp` (the
+    same closed form and small-angle series): the host paths' few small updates, where torch's
+    fixed cost per operation dominates."""
+    if xi.shape[0] == 1:
+        return _se3_exp_one(xi[0])[None]
+    rho, phi = xi[:, :3], xi[:, 3:]
+    theta2 = (phi * phi).sum(-1)
+    small = theta2 < SMALL_ANGLE[torch.float64]
+    t2 = np.where(small, 1.0, theta2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    A = np.where(small, 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42)), s / t)
+    Bc = np.where(small, 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56)), (1 - c) / t2)
+    C = np.where(small, 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72)), (t - s) / (t2 * t))
+    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
+    z = np.zeros_like(a)
+    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
+    W2 = W @ W
+    eye = np.eye(3)
+    R = eye + A[:, None, None] * W + Bc[:, None, None] * W2
+    V = eye + Bc[:, None, None] * W + C[:, None, None] * W2
+    out = np.zeros((xi.shape[0], 4, 4))
+    out[:, :3, :3] = R
+    out[:, :3, 3] = (V @ rho[..., None])[..., 0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
+    """(4, 4) ``exp`` of one float64 twist ``(rho, phi)``: :func:`se3_exp_numpy` in Python scalars."""
+    r0, r1, r2, a, b, c = (float(v) for v in xi)
+    theta2 = a * a + b * b + c * c
+    if theta2 < SMALL_ANGLE[torch.float64]:
+        A = 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42))
+        Bc = 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56))
+        C = 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72))
+    else:
+        t = math.sqrt(theta2)
+        sn, cs = math.sin(t), math.cos(t)
+        A, Bc, C = sn / t, (1 - cs) / theta2, (t - sn) / (theta2 * t)
+    # W = [phi]x and W^2 = phi phi^T - theta^2 I, entry by entry.
+    ab, ac, bc = a * b, a * c, b * c
+    d0, d1, d2 = -(b * b + c * c), -(a * a + c * c), -(a * a + b * b)
+    R = ((1 + Bc * d0, -A * c + Bc * ab, A * b + Bc * ac),
+         (A * c + Bc * ab, 1 + Bc * d1, -A * a + Bc * bc),
+         (-A * b + Bc * ac, A * a + Bc * bc, 1 + Bc * d2))
+    V = ((1 + C * d0, -Bc * c + C * ab, Bc * b + C * ac),
+         (Bc * c + C * ab, 1 + C * d1, -Bc * a + C * bc),
+         (-Bc * b + C * ac, Bc * a + C * bc, 1 + C * d2))
+    t0, t1, t2 = (v0 * r0 + v1 * r1 + v2 * r2 for v0, v1, v2 in V)
+    return np.array([[*R[0], t0], [*R[1], t1], [*R[2], t2], [0.0, 0.0, 0.0, 1.0]])

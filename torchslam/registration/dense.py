@@ -90,11 +90,11 @@ from ..devices import flat_nonzero, index_select
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..geometry import (
-    SMALL_ANGLE,
     PinholeCamera,
     backproject_depth,
     distort_normalized,
     se3_exp,
+    se3_exp_numpy,
     undistorted_rays,
 )
 from ..optim import solve_pair_steps
@@ -137,8 +137,6 @@ _SCALE_ITERATIONS = 5
 # results agree to float round-off). Off, the CPU runs the device path (what an accelerator runs:
 # the synchronisation budgets are measured on it).
 HOST_FAST_PATHS = True
-# The small-angle threshold of se3_exp in float64 (for the NumPy update).
-_SMALL_ANGLE_64 = SMALL_ANGLE[torch.float64]
 # 1.4826 MAD estimates a Gaussian's standard deviation.
 _MAD_TO_SIGMA = 1.4826
 
@@ -1250,7 +1248,7 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
     solved = ok & np.isfinite(delta).all(-1)
     delta = np.where(solved[:, None], delta, 0.0)
     step = active.numpy() & solved
-    E = _se3_exp_numpy(delta)
+    E = se3_exp_numpy(delta)
     T_new = np.where(step[:, None, None], E @ Tn, Tn)
     small = np.sqrt((delta * delta).sum(-1)) < tol
     return torch.from_numpy(T_new), torch.from_numpy(step), torch.from_numpy(small)
@@ -1276,55 +1274,9 @@ def _step_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: fl
     if not solved:
         delta = np.zeros(6)
     step = active and solved
-    T_new = _se3_exp_one(delta) @ T if step else T
+    T_new = se3_exp_numpy(delta[None])[0] @ T if step else T
     small = math.sqrt(float(delta @ delta)) < tol
     return torch.from_numpy(T_new[None]), step, small
-
-
-def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
-    """(4, 4) ``exp`` of one float64 twist ``(rho, phi)``: :func:`_se3_exp_numpy` in scalars."""
-    r0, r1, r2, a, b, c = (float(v) for v in xi)
-    theta2 = a * a + b * b + c * c
-    if theta2 < _SMALL_ANGLE_64:
-        A = 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42))
-        Bc = 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56))
-        C = 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72))
-    else:
-        t = math.sqrt(theta2)
-        sn, cs = math.sin(t), math.cos(t)
-        A, Bc, C = sn / t, (1 - cs) / theta2, (t - sn) / (theta2 * t)
-    W = np.array([[0.0, -c, b], [c, 0.0, -a], [-b, a, 0.0]])
-    W2 = W @ W
-    out = np.eye(4)
-    out[:3, :3] += A * W + Bc * W2
-    out[:3, 3] = (np.eye(3) + Bc * W + C * W2) @ np.array([r0, r1, r2])
-    return out
-
-
-def _se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
-    """(B, 4, 4) ``exp`` of (B, 6) float64 twists ``(rho, phi)``, as :func:`~torchslam.geometry.se3_exp`
-    (the same closed form and small-angle series)."""
-    rho, phi = xi[:, :3], xi[:, 3:]
-    theta2 = (phi * phi).sum(-1)
-    small = theta2 < _SMALL_ANGLE_64
-    t2 = np.where(small, 1.0, theta2)
-    t = np.sqrt(t2)
-    s, c = np.sin(t), np.cos(t)
-    A = np.where(small, 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42)), s / t)
-    Bc = np.where(small, 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56)), (1 - c) / t2)
-    C = np.where(small, 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72)), (t - s) / (t2 * t))
-    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
-    z = np.zeros_like(a)
-    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
-    W2 = W @ W
-    eye = np.eye(3)
-    R = eye + A[:, None, None] * W + Bc[:, None, None] * W2
-    V = eye + Bc[:, None, None] * W + C[:, None, None] * W2
-    out = np.zeros((xi.shape[0], 4, 4))
-    out[:, :3, :3] = R
-    out[:, :3, 3] = (V @ rho[..., None])[..., 0]
-    out[:, 3, 3] = 1.0
-    return out
 
 
 @dataclass(frozen=True)

@@ -61,7 +61,7 @@ from ..features import (
     hamming_distance_indexed,
     match_descriptors_batched,
 )
-from ..geometry import PinholeCamera, se3_exp, skew, umeyama_alignment, undistort_pixels
+from ..geometry import PinholeCamera, se3_exp, se3_exp_numpy, skew, umeyama_alignment, undistort_pixels
 from ..optim import RobustKernel, robust_weight, solve_pair_steps
 
 __all__ = [
@@ -731,6 +731,8 @@ def _refine_maps(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tens
 
 
 def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: SparseConfig):
+    if numpy_viewable(p_i) and numpy_viewable(p_j) and numpy_viewable(mask) and numpy_viewable(T) and p_i.dtype == torch.float64:
+        return _refine_rigid_numpy(p_i, p_j, mask, T, cfg)
     # Few, large tensor operations per step (the pairs are small, so operation count sets the
     # time): one batched product for the residuals, one for all weighted moments, constant
     # linear maps for J^T W J and the twist's matrix, and the matrix exponential for exp(xi).
@@ -761,6 +763,56 @@ def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: Sparse
     sq = ((r * r).sum(-1) * inl).sum(-1)
     rmse = torch.where(num > 0, (sq / num.clamp_min(1)).sqrt(), torch.zeros_like(sq))
     return T, inl, rmse
+
+
+def _refine_rigid_numpy(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: SparseConfig):
+    """:func:`_refine_rigid` in float64 NumPy (plain host tensors): the same steps, the 6 x 6
+    solves as ``solve_pair_steps(host=True)`` and the exponential in closed form (equal to
+    ``matrix_exp`` to round-off). A pair has a few hundred matches, so torch's fixed cost per
+    operation was most of each step's time."""
+    mk = mask.numpy()
+    # Coordinates as planes (B, 3, M): every per-match operation reads contiguous rows.
+    pi, pj = np.ascontiguousarray(p_i.numpy().transpose(0, 2, 1)), p_j.numpy().transpose(0, 2, 1)
+    Tn = T.numpy()
+    B, M = mk.shape
+    z = pi[:, 2]
+    inv_z2 = np.where(mk, 1 / np.where(mk, z * z, 1.0), 0.0)
+    thr2 = np.where(mk, (cfg.inlier_threshold * z) ** 2, -1.0)  # never an inlier off mask
+    delta2 = cfg.huber_delta**2
+    scale = cfg.huber_delta * inv_z2
+    to_H = _refine_maps(torch.float64, torch.device("cpu"))[0].numpy()
+    f = np.empty((B, 10, M))  # rows [1, q, r, q x r]
+    f[:, 0] = 1.0
+    q, r = f[:, 1:4], f[:, 4:7]
+    q0, q1, q2, r0, r1, r2 = f[:, 1], f[:, 2], f[:, 3], f[:, 4], f[:, 5], f[:, 6]
+    for _ in range(cfg.refine_iterations):
+        np.matmul(Tn[:, :3, :3], pj, out=q)
+        q += Tn[:, :3, 3:]  # p_j moved into frame i by T
+        np.subtract(q, pi, out=r)
+        sq = r0 * r0
+        sq += r1 * r1
+        sq += r2 * r2
+        inl = sq < thr2
+        # IRLS weights: Huber min(1, delta / e) on e = |r| / z, times 1 / z^2, on inliers only.
+        w = sq * inv_z2
+        np.maximum(w, delta2, out=w)
+        np.sqrt(w, out=w)
+        np.divide(scale, w, out=w)
+        w *= inl
+        np.subtract(q1 * r2, q2 * r1, out=f[:, 7])
+        np.subtract(q2 * r0, q0 * r2, out=f[:, 8])
+        np.subtract(q0 * r1, q1 * r0, out=f[:, 9])
+        G = (f * w[:, None]) @ f[:, :4].transpose(0, 2, 1)  # (B, 10, 4) weighted moments
+        Hm = (G[:, :4].reshape(B, 16) @ to_H).reshape(B, 6, 6)
+        gn = solve_pair_steps(torch.from_numpy(Hm), torch.from_numpy(np.ascontiguousarray(G[:, 4:, 0])), host=True)
+        step = gn.delta.numpy() * (gn.solved.numpy() & (inl.sum(-1) >= 3))[:, None]
+        Tn = se3_exp_numpy(step) @ Tn
+    T_out = torch.from_numpy(Tn)
+    inl, r = _inliers_at(p_i, p_j, mask, T_out, cfg.inlier_threshold)
+    num = inl.sum(-1)
+    sq = ((r * r).sum(-1) * inl).sum(-1)
+    rmse = torch.where(num > 0, (sq / num.clamp_min(1)).sqrt(), torch.zeros_like(sq))
+    return T_out, inl, rmse
 
 
 def refine_rigid(
