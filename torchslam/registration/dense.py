@@ -684,7 +684,7 @@ def _warp(
 ) -> _Warp:
     """Warp frame j's pixels into frame i at ``T_ij``; without ``gradients`` only the first
     ``_VALUE_CHANNELS`` reference channels are sampled (no Jacobian can be built from it)."""
-    if _host(T_ij) and not (T_ij.requires_grad or lj.points.requires_grad or li.grey.requires_grad or li.depth.requires_grad):
+    if all(_host(x) and not x.requires_grad for x in (T_ij, lj.points, lj.grey, li.grey, li.depth)):
         return _warp_numpy(li, lj, T_ij, min_depth, depth_power, gradients)
     dtype = li.grey.dtype
     B, _, h, w = li.grey.shape
