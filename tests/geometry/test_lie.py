@@ -17,6 +17,7 @@ from torchslam.geometry import (
     se3_exp_numpy,
     se3_inverse,
     se3_log,
+    se3_log_numpy,
     skew,
     so3_exp,
     so3_log,
@@ -175,3 +176,17 @@ def test_se3_exp_numpy_matches_se3_exp(scale):
     R = single[:, :3, :3]
     np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
     assert (single[:, 3] == [0.0, 0.0, 0.0, 1.0]).all()
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-3, 0.3, 2.0, math.pi - 1e-3, math.pi - 1e-8, math.pi])
+def test_se3_log_numpy_matches_se3_log(angle):
+    """The host logarithm equals ``se3_log`` to round-off near the identity, in between and at
+    and near pi (the axis-from-symmetric-part branch), and inverts ``se3_exp_numpy``."""
+    g = torch.Generator().manual_seed(12)
+    axis = torch.randn(8, 3, generator=g, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    xi = torch.cat([torch.randn(8, 3, generator=g, dtype=torch.float64), axis * angle], -1)
+    T = se3_exp(xi)
+    log = se3_log_numpy(T.numpy())
+    np.testing.assert_allclose(log, se3_log(T).numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(se3_exp_numpy(log), T.numpy(), rtol=0, atol=1e-12)

@@ -29,6 +29,7 @@ __all__ = [
     "se3_exp",
     "se3_exp_numpy",
     "se3_log",
+    "se3_log_numpy",
     "se3_inverse",
     "se3_compose",
     "se3_act",
@@ -366,3 +367,39 @@ def _se3_exp_one(xi: np.ndarray) -> np.ndarray:
          (-Bc * b + C * ac, Bc * a + C * bc, 1 + C * d2))
     t0, t1, t2 = (v0 * r0 + v1 * r1 + v2 * r2 for v0, v1, v2 in V)
     return np.array([[*R[0], t0], [*R[1], t1], [*R[2], t2], [0.0, 0.0, 0.0, 1.0]])
+
+
+def se3_log_numpy(T: np.ndarray) -> np.ndarray:
+    """(B, 6) twists ``(rho, phi)`` of (B, 4, 4) float64 rigid transforms in NumPy, as
+    :func:`se3_log` (the same branches: the series near the identity, the axis from the symmetric
+    part near pi): the host paths' per-frame pose algebra, where torch's fixed cost per operation
+    dominates."""
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], -1)  # sin(theta) axis
+    s2 = (v * v).sum(-1)
+    c = np.clip((R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1) / 2, -1.0, 1.0)
+    small = (s2 < SMALL_ANGLE[torch.float64]) & (c > 0)
+    near_pi = c < _NEAR_PI_COS
+    s = np.sqrt(np.where(small | near_pi, 1.0, s2))
+    f = np.where(small, 1 + s2 / 6 * (1 + s2 * 9 / 20 * (1 + s2 * 25 / 42 * (1 + s2 * 49 / 72))), np.arctan2(s, c) / s)
+    phi = f[:, None] * v
+    if near_pi.any():
+        Bm = 0.5 * (R + R.transpose(0, 2, 1)) - c[:, None, None] * np.eye(3)
+        k = np.diagonal(Bm, axis1=-2, axis2=-1).argmax(-1)
+        col = Bm[np.arange(len(k)), :, k]
+        n = col / np.maximum(np.linalg.norm(col, axis=-1, keepdims=True), np.finfo(np.float64).tiny)
+        sign = np.where((n * v).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+        theta = np.arctan2(np.sqrt(np.where(near_pi, s2, 1.0)), c)
+        phi = np.where(near_pi[:, None], sign * n * theta[:, None], phi)
+    theta2 = (phi * phi).sum(-1)
+    small = theta2 < SMALL_ANGLE[torch.float64]
+    t2 = np.where(small, 1.0, theta2)
+    th = np.sqrt(t2)
+    with np.errstate(divide="ignore", invalid="ignore"):  # the masked lanes only
+        D = np.where(small, 1 / 12 + theta2 / 720 * (1 + theta2 / 42 * (1 + theta2 / 40)),
+                     (1 - 0.5 * th * np.sin(th) / (1 - np.cos(th))) / t2)
+    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
+    z = np.zeros_like(a)
+    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
+    Vinv = np.eye(3) - 0.5 * W + D[:, None, None] * (W @ W)
+    return np.concatenate([(Vinv @ t[..., None])[..., 0], phi], -1)

@@ -47,6 +47,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -54,7 +55,10 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
-from ...geometry import PinholeCamera, backproject_depth, project_points, se3_exp, se3_inverse, se3_log, undistorted_rays
+from ...devices import numpy_viewable
+from ...geometry import (
+    PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_log, se3_log_numpy, undistorted_rays,
+)
 from ...registration.dense import DenseFrame, dense_images
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
@@ -280,12 +284,19 @@ class GCSlam:
         # Through the twist, never as the 4x4 step itself: exp puts the prediction back on SE(3),
         # whereas chaining the registered (float32-rounded, slightly non-orthonormal) step would
         # feed the deviation back frame after frame (7-Scenes dense diverged that way).
-        return self._last_T_kf @ se3_exp(v * (t - t0))
+        step = v * (t - t0)
+        if numpy_viewable(step) and numpy_viewable(self._last_T_kf):  # a few numbers: NumPy's cost, not torch's
+            return torch.from_numpy(self._last_T_kf.numpy() @ se3_exp_numpy(step.numpy()[None])[0])
+        return self._last_T_kf @ se3_exp(step)
 
     def _update_velocity(self, T_kf: Tensor, t: float) -> None:
         """Take the step from the last recorded frame to this tracked one (both in the current keyframe)."""
         t0 = self._last_time
-        step = se3_log(se3_inverse(self._last_T_kf) @ T_kf.to(torch.float64))
+        T_kf = T_kf.to(torch.float64)
+        if numpy_viewable(T_kf) and numpy_viewable(self._last_T_kf):  # a few numbers: NumPy's cost, not torch's
+            step = torch.from_numpy(se3_log_numpy((_inverse_numpy(self._last_T_kf.numpy()) @ T_kf.numpy())[None])[0])
+        else:
+            step = se3_log(se3_inverse(self._last_T_kf) @ T_kf)
         dt = t - t0 if t0 is not None else 0.0
         self._velocity = step / dt if 0.0 < dt <= self.cfg.motion_prior_max_gap else None
         self._last_time = t
@@ -298,7 +309,10 @@ class GCSlam:
         """Mean pixel displacement of the keyframe's sample points seen from the frame."""
         if not len(kf.sample_points):
             return float("inf")
-        T = se3_inverse(T_kf_frame.to(torch.float64))
+        T_kf_frame = T_kf_frame.to(torch.float64)
+        if numpy_viewable(T_kf_frame) and numpy_viewable(kf.sample_points):
+            return _displacement_numpy(kf.sample_points.numpy(), kf.sample_pixels.numpy(), T_kf_frame.numpy(), self.camera)
+        T = se3_inverse(T_kf_frame)
         p = kf.sample_points @ T[:3, :3].T + T[:3, 3]
         uv, ok = project_points(p[None], self.intrinsics)
         ok = ok[0]
@@ -608,3 +622,25 @@ SPEC = SystemSpec(
     # one FastGO call (``track_frames``, with the optimisation inline instead of in a thread).
     lockstep=LockstepSpec(step=track_frames, build=functools.partial(GCSlam, deferred=True)),
 )
+
+
+def _inverse_numpy(T: np.ndarray) -> np.ndarray:
+    """(4, 4) inverse of a float64 rigid transform (the transpose of its rotation)."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
+    return out
+
+
+def _displacement_numpy(points: np.ndarray, pixels: np.ndarray, T_kf_frame: np.ndarray, camera: PinholeCamera) -> float:
+    """:meth:`GCSlam._displacement` in NumPy: the mean pixel distance between the keyframe's
+    sample pixels and their points projected into the frame (inf when none lies in front)."""
+    T = _inverse_numpy(T_kf_frame)
+    p = points @ T[:3, :3].T + T[:3, 3]
+    z = p[:, 2]
+    ok = z > 1e-6
+    if not ok.any():
+        return float("inf")
+    u = camera.fx * p[ok, 0] / z[ok] + camera.cx
+    v = camera.fy * p[ok, 1] / z[ok] + camera.cy
+    return float(np.hypot(u - pixels[ok, 0], v - pixels[ok, 1]).mean())
