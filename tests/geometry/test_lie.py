@@ -16,6 +16,7 @@ from torchslam.geometry import (
     se3_exp,
     se3_exp_numpy,
     se3_inverse,
+    se3_inverse_numpy,
     se3_log,
     se3_log_numpy,
     skew,
@@ -165,7 +166,8 @@ def test_bad_input_raises():
 @pytest.mark.parametrize("scale", [1e-7, 1e-3, 0.05, 0.3, 2.0])
 def test_se3_exp_numpy_matches_se3_exp(scale):
     """The host exponential (batched, and one twist in scalars) equals ``se3_exp`` to round-off
-    on both sides of the small-angle switch, and is a rigid motion."""
+    on both sides of the small-angle switch, and is a rigid motion; the host inverse equals
+    ``se3_inverse``."""
     g = torch.Generator().manual_seed(11)
     xi = torch.randn(6, 6, generator=g, dtype=torch.float64) * scale
     ref = se3_exp(xi).numpy()
@@ -176,6 +178,7 @@ def test_se3_exp_numpy_matches_se3_exp(scale):
     R = single[:, :3, :3]
     np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
     assert (single[:, 3] == [0.0, 0.0, 0.0, 1.0]).all()
+    np.testing.assert_allclose(se3_inverse_numpy(batched), se3_inverse(se3_exp(xi)).numpy(), rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize("angle", [1e-9, 1e-3, 0.3, 2.0, math.pi - 1e-3, math.pi - 1e-8, math.pi])

@@ -31,6 +31,7 @@ __all__ = [
     "se3_log",
     "se3_log_numpy",
     "se3_inverse",
+    "se3_inverse_numpy",
     "se3_compose",
     "se3_act",
     "se3_adjoint",
@@ -330,9 +331,7 @@ def se3_exp_numpy(xi: np.ndarray) -> np.ndarray:
     A = np.where(small, 1 - theta2 / 6 * (1 - theta2 / 20 * (1 - theta2 / 42)), s / t)
     Bc = np.where(small, 0.5 - theta2 / 24 * (1 - theta2 / 30 * (1 - theta2 / 56)), (1 - c) / t2)
     C = np.where(small, 1 / 6 - theta2 / 120 * (1 - theta2 / 42 * (1 - theta2 / 72)), (t - s) / (t2 * t))
-    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
-    z = np.zeros_like(a)
-    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
+    W = _skew_numpy(phi)
     W2 = W @ W
     eye = np.eye(3)
     R = eye + A[:, None, None] * W + Bc[:, None, None] * W2
@@ -398,8 +397,24 @@ def se3_log_numpy(T: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):  # the masked lanes only
         D = np.where(small, 1 / 12 + theta2 / 720 * (1 + theta2 / 42 * (1 + theta2 / 40)),
                      (1 - 0.5 * th * np.sin(th) / (1 - np.cos(th))) / t2)
-    a, b, cz = phi[:, 0], phi[:, 1], phi[:, 2]
-    z = np.zeros_like(a)
-    W = np.stack([z, -cz, b, cz, z, -a, -b, a, z], -1).reshape(-1, 3, 3)
+    W = _skew_numpy(phi)
     Vinv = np.eye(3) - 0.5 * W + D[:, None, None] * (W @ W)
     return np.concatenate([(Vinv @ t[..., None])[..., 0], phi], -1)
+
+
+def se3_inverse_numpy(T: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) inverses of float64 rigid transforms in NumPy, as :func:`se3_inverse` (the
+    transpose of the rotation block)."""
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3:])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _skew_numpy(phi: np.ndarray) -> np.ndarray:
+    """(B, 3, 3) ``[phi]x`` of (B, 3) vectors in NumPy."""
+    a, b, c = phi[:, 0], phi[:, 1], phi[:, 2]
+    z = np.zeros_like(a)
+    return np.stack([z, -c, b, c, z, -a, -b, a, z], -1).reshape(-1, 3, 3)

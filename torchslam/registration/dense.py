@@ -86,7 +86,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..devices import flat_nonzero, index_select
+from ..devices import flat_nonzero, index_select, numpy_viewable
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..fastgo import PairStats
 from ..geometry import (
@@ -427,7 +427,7 @@ def _reduce_depth(depth: Tensor, k: int, tol: float, lo: float | None = None, hi
     no full-resolution masks.
     """
     h, w = depth.shape[-2] // k, depth.shape[-1] // k
-    if k > 1 and depth.dtype == torch.float32 and depth.dim() == 4 and not depth.requires_grad and _host(depth):
+    if k > 1 and depth.dtype == torch.float32 and depth.dim() == 4 and _numpy_ok(depth):
         return _reduce_depth_host(depth, k, tol, lo, hi)
     total = count = dmax = dmin = None
     for a in range(k):
@@ -684,7 +684,7 @@ def _warp(
 ) -> _Warp:
     """Warp frame j's pixels into frame i at ``T_ij``; without ``gradients`` only the first
     ``_VALUE_CHANNELS`` reference channels are sampled (no Jacobian can be built from it)."""
-    if all(_host(x) and not x.requires_grad for x in (T_ij, lj.points, lj.grey, li.grey, li.depth)):
+    if _numpy_ok(T_ij, lj.points, lj.grey, li.grey, li.depth):
         return _warp_numpy(li, lj, T_ij, min_depth, depth_power, gradients)
     dtype = li.grey.dtype
     B, _, h, w = li.grey.shape
@@ -824,7 +824,7 @@ def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: 
     if robust is DenseRobust.HUBER:
         med = torch.where(m, rn.abs(), torch.full_like(rn, float("nan"))).nanmedian(dim=-1).values
         return torch.maximum(_MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
-    if _host(rn) and not rn.requires_grad:
+    if _numpy_ok(rn, m):
         return _scale_numpy(rn, m, cfg, floor, start)
     nu = cfg.student_t_dof
     n = m.sum(-1).clamp_min(1).to(rn.dtype)
@@ -886,7 +886,7 @@ def _term_weights(cfg: DenseConfig, like: Tensor) -> Tensor:
 
 def _scaled_sq(wp: _Warp, s: Tensor) -> Tensor:
     """(B, 2, N) squared residuals in units of their robust scales ``s`` (B, 2)."""
-    if _host(s) and not (s.requires_grad or wp.rn.requires_grad):
+    if _numpy_ok(s, wp.rn):
         e = wp.rn.numpy() / s.numpy()[..., None]
         return torch.from_numpy(np.multiply(e, e, out=e))
     return (wp.rn / s[..., None]).square_()
@@ -895,7 +895,7 @@ def _scaled_sq(wp: _Warp, s: Tensor) -> Tensor:
 def _cost(wp: _Warp, e2: Tensor, robust: DenseRobust, cfg: DenseConfig) -> Tensor:
     """(B,) float64 mean robust photometric cost plus ``lambda`` times the mean geometric one
     (``e2`` from :func:`_scaled_sq`)."""
-    if _host(e2) and not e2.requires_grad and robust is DenseRobust.STUDENT_T:
+    if robust is DenseRobust.STUDENT_T and _numpy_ok(e2, wp.m):
         # The same float32 arithmetic in NumPy (the CPU's per-operation cost, as _scale_numpy).
         e = e2.numpy()
         dt = e.dtype.type
@@ -929,7 +929,7 @@ def _linear_system(
 ) -> tuple[Tensor, Tensor]:
     """(B, 6, 6) ``H`` and (B, 6) ``g`` of a warp: :func:`_jacobian_rows` and
     :func:`_normal_equations`, on the CPU in NumPy (:func:`_linear_system_numpy`)."""
-    if _host(e2) and not (e2.requires_grad or wp.rn.requires_grad or wp.sample.requires_grad):
+    if _numpy_ok(e2, s, wp.q, wp.sample, wp.rn, wp.cn, wp.m, wp.iz):
         return _linear_system_numpy(wp, cam, e2, s, robust, cfg)
     return _normal_equations(wp, _jacobian_rows(wp, cam), e2, s, robust, cfg)
 
@@ -1215,6 +1215,12 @@ def _host(x: Tensor) -> bool:
     return HOST_FAST_PATHS and x.device.type == "cpu" and type(x) is Tensor
 
 
+def _numpy_ok(*xs: Tensor) -> bool:
+    """Whether the NumPy versions may stand in for torch on ``xs``: every one a host tensor
+    (:func:`_host`) that needs no gradient (:func:`~torchslam.devices.numpy_viewable`)."""
+    return HOST_FAST_PATHS and all(numpy_viewable(x) for x in xs)
+
+
 def _gauss_newton_update(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
     """Solve the B normal equations and apply the steps: ``T <- exp(delta) T`` where a pair is active and solved.
 
@@ -1238,7 +1244,8 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
     :func:`~torchslam.optim.solve_pair_steps`."""
     Hn, gn, Tn = H.numpy(), g.numpy(), T.numpy()
     if Hn.shape[0] == 1:
-        return _update_one(Hn[0], gn[0], Tn[0], bool(active[0]), tol)
+        T_new, step, small = _step_one(Hn[0], gn[0], Tn[0], bool(active[0]), tol)
+        return T_new, torch.tensor([step]), torch.tensor([small])
     eye = np.eye(6)
     ok = np.isfinite(Hn).all((1, 2))
     Hn = np.where(ok[:, None, None], Hn, eye)
@@ -1254,15 +1261,10 @@ def _update_numpy(H: Tensor, g: Tensor, T: Tensor, active: Tensor, tol: float) -
     return torch.from_numpy(T_new), torch.from_numpy(step), torch.from_numpy(small)
 
 
-def _update_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: float) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`_update_numpy` for one pair (tracking), without its batch bookkeeping: ``H`` is
-    positive definite when its Cholesky factorisation exists."""
-    T_new, step, small = _step_one(H, g, T, active, tol)
-    return T_new, torch.tensor([step]), torch.tensor([small])
-
-
 def _step_one(H: np.ndarray, g: np.ndarray, T: np.ndarray, active: bool, tol: float) -> tuple[Tensor, bool, bool]:
-    """:func:`_update_one` with the flags as Python bools (the (1, 4, 4) pose a tensor)."""
+    """:func:`_update_numpy` for one pair (tracking), without its batch bookkeeping: ``H`` is
+    positive definite when its Cholesky factorisation exists. Returns the (1, 4, 4) pose, and
+    "step taken" and "step below ``tol``" as Python bools."""
     delta = None
     if np.isfinite(H).all():
         try:

@@ -731,7 +731,7 @@ def _refine_maps(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tens
 
 
 def _refine_rigid(p_i: Tensor, p_j: Tensor, mask: Tensor, T: Tensor, cfg: SparseConfig):
-    if numpy_viewable(p_i) and numpy_viewable(p_j) and numpy_viewable(mask) and numpy_viewable(T) and p_i.dtype == torch.float64:
+    if p_i.dtype == torch.float64 and all(numpy_viewable(x) for x in (p_i, p_j, mask, T)):
         return _refine_rigid_numpy(p_i, p_j, mask, T, cfg)
     # Few, large tensor operations per step (the pairs are small, so operation count sets the
     # time): one batched product for the residuals, one for all weighted moments, constant

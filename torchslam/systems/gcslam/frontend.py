@@ -20,7 +20,6 @@ Convention:
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
@@ -88,10 +87,11 @@ class Registration:
     result: SparseResult | DenseResult
     correspondences: int
 
-    @functools.cached_property
+    @property
     def stats(self) -> PairStats:
-        """FastGO statistics of its correspondences (one pair; points in keyframe and frame),
-        computed where the dense front-end has not yet: only a frame that becomes a keyframe needs them."""
+        """FastGO statistics of its correspondences (one pair; points in keyframe and frame). A
+        dense result computes them on first read and keeps them: only a frame that becomes a
+        keyframe needs them."""
         return self.result.stats
 
 

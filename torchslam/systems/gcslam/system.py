@@ -57,7 +57,8 @@ from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
 from ...devices import numpy_viewable
 from ...geometry import (
-    PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_log, se3_log_numpy, undistorted_rays,
+    PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
+    undistorted_rays,
 )
 from ...registration.dense import DenseFrame, dense_images
 from ...registration.sparse import FrameFeatures, register_sparse_batch
@@ -294,7 +295,7 @@ class GCSlam:
         t0 = self._last_time
         T_kf = T_kf.to(torch.float64)
         if numpy_viewable(T_kf) and numpy_viewable(self._last_T_kf):  # a few numbers: NumPy's cost, not torch's
-            step = torch.from_numpy(se3_log_numpy((_inverse_numpy(self._last_T_kf.numpy()) @ T_kf.numpy())[None])[0])
+            step = torch.from_numpy(se3_log_numpy((se3_inverse_numpy(self._last_T_kf.numpy()) @ T_kf.numpy())[None])[0])
         else:
             step = se3_log(se3_inverse(self._last_T_kf) @ T_kf)
         dt = t - t0 if t0 is not None else 0.0
@@ -624,18 +625,11 @@ SPEC = SystemSpec(
 )
 
 
-def _inverse_numpy(T: np.ndarray) -> np.ndarray:
-    """(4, 4) inverse of a float64 rigid transform (the transpose of its rotation)."""
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
-    return out
-
-
 def _displacement_numpy(points: np.ndarray, pixels: np.ndarray, T_kf_frame: np.ndarray, camera: PinholeCamera) -> float:
     """:meth:`GCSlam._displacement` in NumPy: the mean pixel distance between the keyframe's
-    sample pixels and their points projected into the frame (inf when none lies in front)."""
-    T = _inverse_numpy(T_kf_frame)
+    sample pixels and their points projected into the frame (inf when none lies in front, i.e.
+    beyond ``project_points``' default ``min_depth``)."""
+    T = se3_inverse_numpy(T_kf_frame)
     p = points @ T[:3, :3].T + T[:3, 3]
     z = p[:, 2]
     ok = z > 1e-6
