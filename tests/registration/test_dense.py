@@ -366,14 +366,27 @@ def test_pair_stats_equal_a_brute_force_build(synthetic):
 
 
 def test_batch_equals_per_pair_calls(synthetic):
+    """The batched path (an accelerator's; on the CPU with the host paths off) equals one call
+    per pair; on the CPU a batch runs pair by pair (``_register_each``) and equals those calls
+    exactly, a pair without valid depth (failed) included."""
     cam, rgb, depth, _ = synthetic
     cfg = DenseConfig()
     fi = prepare_dense_frame(rgb[:1], depth[:1], cam, cfg)
     fj = prepare_dense_frame(rgb[1:], depth[1:], cam, cfg)
     T_init = se3_exp(torch.tensor([[0.01, 0.0, 0.0, 0.0, 0.01, 0.0], [0.0] * 6], dtype=F64))
-    batch = register_dense_frames(fi.expand(2), fj, T_init, cfg)
-    for b in range(2):
-        one = register_dense_frames(fi, fj[b], T_init[b], cfg)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+        batch = register_dense_frames(fi.expand(2), fj, T_init, cfg)
+    empty = prepare_dense_frame(rgb[1:2], torch.zeros_like(depth[1:2]), cam, cfg)
+    host = register_dense_frames(fi.expand(3), DenseFrame.cat([fj, empty]), torch.cat([T_init, T_init[:1]]), cfg)
+    assert host.success.tolist() == [True, True, False] and int(host.num_correspondences[2]) == 0
+    for b in range(3):
+        one = register_dense_frames(fi, (fj[b] if b < 2 else empty), T_init[b % 2], cfg)
+        for name in ("T_ij", "success", "num_correspondences", "iterations", "residual_photometric", "residual_geometric"):
+            assert torch.equal(getattr(host, name)[b : b + 1], getattr(one, name)), name
+        if b == 2:
+            break
+        assert torch.equal(host.stats[b : b + 1].as_vector(), one.stats.as_vector())
         # A batch pads each pair's valid-pixel list to the longest, so its float32 sums run over
         # more (zero) terms and round differently: equal to 1e-7 m, not bit for bit.
         torch.testing.assert_close(batch.T_ij[b : b + 1], one.T_ij, rtol=0, atol=1e-7)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ...devices import is_host
 from ...errors import TorchSlamError
 from ...fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closures, optimize
 from ...loop import MILDDatabase
@@ -178,11 +179,18 @@ class Optimizer:
         """
         if not all(k < len(self.images) and self.images[k] is not None for k in refs + [kf]):
             return [None] * len(refs)
-        fi = DenseFrame.cat([self._pyramid(r) for r in refs])
-        fj = self._pyramid(kf).expand(len(refs))
-        res = register_dense_frames(fi, fj, T_init.to(fj.levels[0].grey.device, torch.float64), self.cfg.dense)
+        fj = self._pyramid(kf)
+        T = T_init.to(fj.levels[0].grey.device, torch.float64)
+        if is_host(T):
+            # The host registers B pairs one by one anyway (``registration.dense``): each pair
+            # against its cached pyramid, whose reference channels are then built once and kept,
+            # instead of a concatenated copy of the pyramids.
+            parts = [(register_dense_frames(self._pyramid(r), fj, T[k], self.cfg.dense), 0) for k, r in enumerate(refs)]
+        else:
+            res = register_dense_frames(DenseFrame.cat([self._pyramid(r) for r in refs]), fj.expand(len(refs)), T, self.cfg.dense)
+            parts = [(res, k) for k in range(len(refs))]
         out: list[tuple[Tensor, PairStats] | None] = []
-        for k in range(len(refs)):
+        for res, k in parts:
             ok = bool(res.success[k])
             self.refined[kind if ok else "failed"] += 1
             out.append((res.T_ij[k].to("cpu", torch.float64), res.stats[torch.tensor([k], device=res.stats.device)].to("cpu", torch.float64))
