@@ -369,8 +369,9 @@ def test_a_promoted_keyframe_joins_mild_but_proposes_no_loops():
 
 
 def test_keyframe_pairs_option_resolves_per_frontend_and_is_checked():
-    assert GCSlamConfig().dense_pairs  # auto with the sparse front-end: dense pairs
-    assert not GCSlamConfig(frontend="dense").dense_pairs  # auto with the dense one: its own
+    assert GCSlamConfig().dense_pairs  # auto: dense pairs with either front-end
+    assert GCSlamConfig(frontend="dense").dense_pairs
+    assert not GCSlamConfig(frontend="dense", keyframe_pairs="sparse").dense_pairs
     assert not GCSlamConfig(keyframe_pairs="sparse").dense_pairs
     assert GCSlamConfig(frontend="dense", keyframe_pairs="dense").dense_pairs
     with pytest.raises(ConfigError, match="keyframe_pairs"):
@@ -442,6 +443,51 @@ def test_orb_pairs_stay_where_dense_pairs_are_off_or_not_asked_for(keyframe_pair
     assert [im is not None for im in opt.images] == [keyframe_pairs == "dense"] * 2
 
 
+def test_loop_pair_weight_option_resolves_per_frontend_and_is_checked():
+    assert GCSlamConfig(frontend="dense").loops_at_orb_weight  # auto with the dense front-end: the ORB weight
+    assert not GCSlamConfig().loops_at_orb_weight  # auto with the sparse one: the correspondences' own
+    assert GCSlamConfig(loop_pair_weight="orb").loops_at_orb_weight
+    assert not GCSlamConfig(frontend="dense", loop_pair_weight="correspondences").loops_at_orb_weight
+    with pytest.raises(ConfigError, match="loop_pair_weight"):
+        config_from_dict(GCSlamConfig, {"loop_pair_weight": "count"})
+
+
+def test_densely_measured_loops_enter_fastgo_at_their_orb_weight(monkeypatch):
+    """``loop_pair_weight=orb``: each densely measured loop keeps the dense correspondences'
+    statistics (their count, their pose) scaled to the total weight of its ORB registration;
+    ``correspondences`` keeps the dense weight, tens of times larger."""
+    seq = generate_sequence(SyntheticConfig(frames=40, fps=10.0, trajectory="loop", seed=0, **SMALL))
+    orb_n: list[float] = []
+    optimizers: list[go.Optimizer] = []
+    real_register, real_init = go.register_sparse_batch, go.Optimizer.__init__
+
+    def register(*args, **kwargs):
+        res = real_register(*args, **kwargs)
+        orb_n.extend(float(res.stats.n[b]) for b in range(len(res.success)) if bool(res.success[b]))
+        return res
+
+    def init(self, *args, **kwargs):
+        real_init(self, *args, **kwargs)
+        optimizers.append(self)
+
+    monkeypatch.setattr(go, "register_sparse_batch", register)
+    monkeypatch.setattr(go.Optimizer, "__init__", init)
+    loops = {}
+    for weight in ("orb", "correspondences"):
+        orb_n.clear()
+        _, a = _run(seq, frontend="dense", keyframe_pairs="dense", loop_pair_weight=weight)
+        opt = optimizers[-1]
+        stats = PairStats.cat(opt.stats)
+        loops[weight] = stats[torch.tensor([kind == "loop" for kind in opt.pair_kind])]
+        assert len(loops[weight]) and opt.refined["loops"] >= len(loops[weight]) and a.stats["rmse"] < 0.01
+        assert (loops[weight].count > 1000).all()  # dense correspondences either way
+        if weight == "orb":
+            for n in loops[weight].n.tolist():
+                assert min(abs(n - m) for m in orb_n) <= 1e-9 * n
+    ratio = [(s.n / s.count).tolist() for s in (loops["orb"], loops["correspondences"])]
+    assert max(ratio[0]) < 0.1 * min(ratio[1]), ratio
+
+
 @pytest.mark.parametrize("frontend", ["sparse", "dense"])
 def test_dense_keyframe_pairs_in_a_run(frontend):
     seq = generate_sequence(SyntheticConfig(frames=40, fps=10.0, trajectory="loop", seed=0, **SMALL))
@@ -457,7 +503,6 @@ def test_dense_keyframe_pairs_in_a_run(frontend):
     assert m["dense_pairs"]["odometry"] + (m["dense_pairs"]["failed"] if frontend == "sparse" else 0) >= odometry
     assert m["tracking"]["relocalized"] == 0
     assert a_dense.stats["rmse"] < 0.01, a_dense.stats
-    if frontend == "dense":
-        # auto is sparse pairs for the dense front-end: the same run as keyframe_pairs=sparse.
-        auto, _ = _run(seq, frontend=frontend)
-        torch.testing.assert_close(auto.output.T_wc, orb.output.T_wc, rtol=0, atol=0)
+    # auto is dense pairs for either front-end: the same run as keyframe_pairs=dense.
+    auto, _ = _run(seq, frontend=frontend)
+    torch.testing.assert_close(auto.output.T_wc, dense.output.T_wc, rtol=0, atol=0)

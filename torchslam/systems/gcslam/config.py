@@ -89,9 +89,17 @@ class GCSlamConfig:
             front-end's keyframes, relocalised keyframes, loops) is registered again densely,
             photometrically and geometrically from that pose, and enters FastGO with the dense
             correspondences' statistics; where the dense registration fails the ORB one stays.
-            ``"auto"``: ``dense`` with the sparse front-end, ``sparse`` with the dense one (its
-            tracked pairs are dense already, and densely refined loops did not help it: README,
-            "Keyframe pairs registered densely").
+            ``"auto"``: ``dense`` with either front-end (the dense one's tracked pairs are dense
+            already, so there it measures its loops and relocalised keyframes densely, the loops
+            at their ORB weight, ``loop_pair_weight``: README, "Densely measured loops weighted
+            as their ORB registration").
+        loop_pair_weight: the weight in FastGO of a loop measured densely (``keyframe_pairs``).
+            ``"correspondences"``: its dense correspondences' own (FastGO weighs a pair by its
+            weighted correspondence count, tens of thousands for a dense pair); ``"orb"``
+            (beyond the paper): its statistics scaled to the total weight of the loop's ORB
+            registration, i.e. the dense pose with the ORB pair's pull (README, "Densely measured
+            loops weighted as their ORB registration"); ``"auto"``: ``orb`` with the dense
+            front-end, ``correspondences`` with the sparse one.
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -123,6 +131,7 @@ class GCSlamConfig:
     motion_prior: str = "constant_velocity"
     motion_prior_max_gap: float = 0.2
     keyframe_pairs: str = "auto"
+    loop_pair_weight: str = "auto"
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
@@ -142,14 +151,21 @@ class GCSlamConfig:
             raise ConfigError(f"motion_prior: expected 'constant_velocity' or 'none', got {self.motion_prior!r}")
         if self.keyframe_pairs not in ("auto", "sparse", "dense"):
             raise ConfigError(f"keyframe_pairs: expected 'auto', 'sparse' or 'dense', got {self.keyframe_pairs!r}")
+        if self.loop_pair_weight not in ("auto", "correspondences", "orb"):
+            raise ConfigError(f"loop_pair_weight: expected 'auto', 'correspondences' or 'orb', got {self.loop_pair_weight!r}")
         check_limits(self)
 
     @property
     def dense_pairs(self) -> bool:
         """Whether ORB-registered pose-graph pairs are registered again densely (``keyframe_pairs``, ``auto`` resolved)."""
-        if self.keyframe_pairs == "auto":
-            return self.frontend is Frontend.SPARSE
-        return self.keyframe_pairs == "dense"
+        return self.keyframe_pairs in ("auto", "dense")
+
+    @property
+    def loops_at_orb_weight(self) -> bool:
+        """Whether a densely measured loop enters FastGO with its ORB registration's total weight (``loop_pair_weight``, ``auto`` resolved)."""
+        if self.loop_pair_weight == "auto":
+            return self.frontend is Frontend.DENSE
+        return self.loop_pair_weight == "orb"
 
     def orb(self) -> ORBConfig:
         """The ORB extractor's settings."""

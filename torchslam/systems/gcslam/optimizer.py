@@ -223,7 +223,8 @@ class Optimizer:
             # Each verified loop measured again densely from its ORB pose; a failure keeps the ORB one.
             for b, m in zip(ok, self.measure_densely([candidates[b] for b in ok], kf, res.T_ij[ok], "loops")):
                 if m is not None:
-                    pair_stats[b] = m[1]
+                    # The dense pose; with ``loop_pair_weight`` orb, the ORB pair's total weight.
+                    pair_stats[b] = m[1].weighted(pair_stats[b].n / m[1].n) if cfg.loops_at_orb_weight else m[1]
             t0 = self._add_ms("pair_refinement", t0)
         # All verified candidates are tested together; if that is rejected, each on its own, so
         # one false candidate does not take the true ones down with it.
