@@ -11,10 +11,10 @@ faults as a run sees them), not isolated; compare two checkouts with ``bench_nis
 
 from __future__ import annotations
 
+import argparse
 import collections
 import os
 import resource
-import sys
 import time
 
 import torch
@@ -71,7 +71,9 @@ def _wrap(owner, name: str, label: str) -> None:
 
 
 def main() -> None:
-    name = sys.argv[1] if len(sys.argv) > 1 else "tum_fr1_xyz"
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequence", nargs="?", default="tum_fr1_xyz", help="a sequence folder under $TORCHSLAM_DATA")
+    name = ap.parse_args().sequence
     torch.set_num_threads(1)
     for owner, fn, label in WRAPPED:
         _wrap(owner, fn, label)
