@@ -98,6 +98,31 @@ def test_multi_index_lookup_equals_substring_scan(bits, scale):
     assert len(ref) > 50
 
 
+def test_host_row_search_equals_torch_searchsorted(monkeypatch):
+    """The host's row-by-row NumPy search (values in ascending order, sorted runs or queries by
+    their argsort) gives torch.searchsorted's positions, ties and out-of-range values included;
+    the database built and queried either way yields the same candidates."""
+    gen = torch.Generator().manual_seed(5)
+    keys = torch.sort(torch.randint(0, 50, (4, 300), dtype=torch.int32, generator=gen), dim=1).values  # many ties
+    values = torch.randint(-5, 60, (4, 120), dtype=torch.int32, generator=gen)
+    order = np.argsort(values.numpy(), axis=1, kind="stable")
+    run = torch.sort(values, dim=1).values
+    for right in (False, True):
+        assert torch.equal(mild_module._search_rows(keys, values, right, order), torch.searchsorted(keys, values, right=right))
+        assert torch.equal(mild_module._search_rows(keys, run, right), torch.searchsorted(keys, run, right=right))
+    sets = [_rand(k, gen) for k in (300, 40, 512, 3, 128, 90, 300)]
+    query = torch.cat([_flip_bits(sets[2][:60], 30, gen), _rand(50, gen)])
+    found = []
+    for host in (True, False):
+        if not host:
+            monkeypatch.setattr(mild_module, "numpy_viewable", lambda x: False)
+        db = MILDDatabase()
+        for i, d in enumerate(sets):
+            db.add(i, d)
+        found.append([t.tolist() for t in db.candidates(query)] + [db.similarity(query)[1].tolist()])
+    assert found[0] == found[1] and len(found[0][0]) > 50
+
+
 def test_levels_stay_sorted_and_geometric():
     gen = torch.Generator().manual_seed(2)
     db = MILDDatabase()

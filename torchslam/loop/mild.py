@@ -42,9 +42,11 @@ import logging
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from ..devices import numpy_viewable
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, TorchSlamError, check_limits, check_shape
 from ..features.matching import hamming_distance_indexed, pack_descriptors
 
@@ -119,6 +121,28 @@ def substring_keys(descriptors: Tensor, tables: int = 16) -> Tensor:
     return parts.sum(-1).T.contiguous()
 
 
+def _search_rows(keys: Tensor, values: Tensor, right: bool, order: np.ndarray | None = None) -> Tensor:
+    """``torch.searchsorted(keys, values, right=right)`` of (m, n) sorted rows and (m, Q) values.
+
+    On the host it runs row by row in NumPy with the values in ascending order: ``values`` sorted
+    per row already (``order`` None: a sorted run, as in :func:`_merge`), or sorted by ``order``
+    (their per-row ``argsort``), the positions then scattered back to the values' own order. A
+    binary search over ascending values reuses its cache lines, about twice torch's speed on
+    random queries; the positions are the same integers.
+    """
+    if not (numpy_viewable(keys) and numpy_viewable(values)):
+        return torch.searchsorted(keys, values, right=right)
+    k, v = keys.numpy(), values.numpy()
+    side = "right" if right else "left"
+    out = np.empty(v.shape, dtype=np.int64)
+    for t in range(k.shape[0]):  # one table per row (16 by default)
+        if order is None:
+            out[t] = np.searchsorted(k[t], v[t], side)
+        else:
+            out[t, order[t]] = np.searchsorted(k[t], v[t, order[t]], side)
+    return torch.from_numpy(out)
+
+
 class _Level:
     """One sorted run of all m tables: ``keys`` and ``ids`` (m, n), sorted by (key, id) per row.
 
@@ -145,15 +169,13 @@ class _Level:
     def size(self) -> int:
         return int(self.keys.shape[1])
 
-    def bucket_ranges(self, qkeys: Tensor) -> tuple[Tensor, Tensor]:
-        """(m, Q) start and end positions of each query substring's bucket in each table."""
+    def bucket_ranges(self, qkeys: Tensor, order: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
+        """(m, Q) start and end positions of each query substring's bucket in each table;
+        ``order``: the per-row ``argsort`` of ``qkeys`` on the host (:func:`_search_rows`)."""
         if self.offsets is not None:
             k = qkeys.to(torch.int64)
             return torch.gather(self.offsets, 1, k), torch.gather(self.offsets, 1, k + 1)
-        return (
-            torch.searchsorted(self.keys, qkeys, right=False),
-            torch.searchsorted(self.keys, qkeys, right=True),
-        )
+        return _search_rows(self.keys, qkeys, False, order), _search_rows(self.keys, qkeys, True, order)
 
 
 def _merge(old: _Level, new: _Level, bits: int) -> _Level:
@@ -161,8 +183,8 @@ def _merge(old: _Level, new: _Level, bits: int) -> _Level:
     m, na, nb = old.keys.shape[0], old.size, new.size
     dev = old.keys.device
     # Equal keys: old entries first, which keeps (key, id) order since new ids are larger.
-    pos_old = torch.searchsorted(new.keys, old.keys, right=False) + torch.arange(na, device=dev)
-    pos_new = torch.searchsorted(old.keys, new.keys, right=True) + torch.arange(nb, device=dev)
+    pos_old = _search_rows(new.keys, old.keys, False) + torch.arange(na, device=dev)
+    pos_new = _search_rows(old.keys, new.keys, True) + torch.arange(nb, device=dev)
     keys = old.keys.new_empty(m, na + nb)
     ids = old.ids.new_empty(m, na + nb)
     keys.scatter_(1, pos_old, old.keys)
@@ -290,8 +312,10 @@ class MILDDatabase:
         dev = descriptors.device
         q = descriptors.shape[0]
         qkeys = substring_keys(descriptors, self.cfg.tables).to(self._key_dtype)  # (m, Q)
+        # On the host the binary searches of every level take the queries in ascending order.
+        order = np.argsort(qkeys.numpy(), axis=1, kind="stable") if numpy_viewable(qkeys) else None
         for level in self._levels:
-            lo, hi = level.bucket_ranges(qkeys)  # (m, Q)
+            lo, hi = level.bucket_ranges(qkeys, order)  # (m, Q)
             counts = (hi - lo).flatten()  # (m * Q,): probe t * Q + i
             starts = lo.flatten()
             csum = torch.cumsum(counts, 0)
