@@ -121,26 +121,37 @@ def substring_keys(descriptors: Tensor, tables: int = 16) -> Tensor:
     return parts.sum(-1).T.contiguous()
 
 
-def _search_rows(keys: Tensor, values: Tensor, right: bool, order: np.ndarray | None = None) -> Tensor:
+def _search_rows(keys: Tensor, values: Tensor, right: bool, ascending: tuple[np.ndarray, np.ndarray] | None = None) -> Tensor:
     """``torch.searchsorted(keys, values, right=right)`` of (m, n) sorted rows and (m, Q) values.
 
     On the host it runs row by row in NumPy with the values in ascending order: ``values`` sorted
-    per row already (``order`` None: a sorted run, as in :func:`_merge`), or sorted by ``order``
-    (their per-row ``argsort``), the positions then scattered back to the values' own order. A
-    binary search over ascending values reuses its cache lines, about twice torch's speed on
-    random queries; the positions are the same integers.
+    per row already (``ascending`` None: a sorted run, as in :func:`_merge`), or ``ascending`` =
+    (their per-row ``argsort``, the values in that order; :func:`_ascending`), the positions then
+    scattered back to the values' own order. A binary search over ascending values reuses its
+    cache lines, about twice torch's speed on random queries; the positions are the same integers.
     """
     if not (numpy_viewable(keys) and numpy_viewable(values)):
         return torch.searchsorted(keys, values, right=right)
-    k, v = keys.numpy(), values.numpy()
+    k = keys.numpy()
     side = "right" if right else "left"
-    out = np.empty(v.shape, dtype=np.int64)
+    out = np.empty(values.shape, dtype=np.int64)
     for t in range(k.shape[0]):  # one table per row (16 by default)
-        if order is None:
-            out[t] = np.searchsorted(k[t], v[t], side)
+        if ascending is None:
+            out[t] = np.searchsorted(k[t], values[t].numpy(), side)
         else:
-            out[t, order[t]] = np.searchsorted(k[t], v[t, order[t]], side)
+            order, sorted_values = ascending
+            out[t, order[t]] = np.searchsorted(k[t], sorted_values[t], side)
     return torch.from_numpy(out)
+
+
+def _ascending(values: Tensor) -> tuple[np.ndarray, np.ndarray] | None:
+    """(m, Q) host values' per-row ``argsort`` and the values in that order, for every level's
+    :func:`_search_rows`; None off the host (torch searches them as they are)."""
+    if not numpy_viewable(values):
+        return None
+    v = values.numpy()
+    order = np.argsort(v, axis=1, kind="stable")
+    return order, np.take_along_axis(v, order, axis=1)
 
 
 class _Level:
@@ -169,13 +180,13 @@ class _Level:
     def size(self) -> int:
         return int(self.keys.shape[1])
 
-    def bucket_ranges(self, qkeys: Tensor, order: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
+    def bucket_ranges(self, qkeys: Tensor, ascending: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Tensor, Tensor]:
         """(m, Q) start and end positions of each query substring's bucket in each table;
-        ``order``: the per-row ``argsort`` of ``qkeys`` on the host (:func:`_search_rows`)."""
+        ``ascending``: ``qkeys`` sorted per row on the host (:func:`_ascending`)."""
         if self.offsets is not None:
             k = qkeys.to(torch.int64)
             return torch.gather(self.offsets, 1, k), torch.gather(self.offsets, 1, k + 1)
-        return _search_rows(self.keys, qkeys, False, order), _search_rows(self.keys, qkeys, True, order)
+        return _search_rows(self.keys, qkeys, False, ascending), _search_rows(self.keys, qkeys, True, ascending)
 
 
 def _merge(old: _Level, new: _Level, bits: int) -> _Level:
@@ -312,10 +323,9 @@ class MILDDatabase:
         dev = descriptors.device
         q = descriptors.shape[0]
         qkeys = substring_keys(descriptors, self.cfg.tables).to(self._key_dtype)  # (m, Q)
-        # On the host the binary searches of every level take the queries in ascending order.
-        order = np.argsort(qkeys.numpy(), axis=1, kind="stable") if numpy_viewable(qkeys) else None
+        ascending = _ascending(qkeys)  # on the host every level searches the queries in ascending order
         for level in self._levels:
-            lo, hi = level.bucket_ranges(qkeys, order)  # (m, Q)
+            lo, hi = level.bucket_ranges(qkeys, ascending)  # (m, Q)
             counts = (hi - lo).flatten()  # (m * Q,): probe t * Q + i
             starts = lo.flatten()
             csum = torch.cumsum(counts, 0)

@@ -1391,7 +1391,7 @@ def _register(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) -> De
     for level, n_iter in zip(reversed(range(cfg.levels)), cfg.iterations):
         li, lj = fi.levels[level], fj.levels[level]
         lj = _select_pixels(lj, cfg.finest_pixel_step if level == 0 else 1)
-        if host and B == 1:
+        if host:  # one pair here (several were split above)
             T, kept = _iterate_one(li, lj, T, n_iter, cfg.tol if level else cfg.finest_tol, cfg, robust)
             iterations += kept
             continue
