@@ -1361,7 +1361,7 @@ def _register_each(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) 
     The batched path's arrays of B pairs are B times the working set of one: on the CPU the
     pairs' fresh memory, the padded pixel lists and the element-wise selections over (B, 7, N)
     rows cost more than the per-pair bookkeeping saves (5 loop pairs of fr1/xyz: about 1.3 x
-    faster warm, up to 5 x inside a run; README, "Loop pairs registered one by one"). The
+    faster warm, about 3 x inside a run; README, "Loop pairs registered one by one"). The
     poses agree with the batched path's to rounding.
     """
     parts = [_register(fi[k], fj[k], T[k : k + 1], cfg) for k in range(len(fi))]
