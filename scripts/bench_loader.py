@@ -9,9 +9,13 @@ with three kinds of consumer:
 * ``spin-gil``: the same busy-wait as a pure Python loop that holds the GIL, the worst case for a
   thread-based prefetch (the decoder thread only gets the GIL at the interpreter's switch interval).
 
+Each setting runs with each decoder of ``--decoders``: ``fast`` (the loader's default: PNGs on
+``torchslam.data.png``'s ISA-L path where they qualify, else OpenCV) and ``opencv`` (OpenCV for
+every image, as before that path existed), so both are measured in the same run.
+
 Writes ``scripts/results/bench_loader.json`` and prints a markdown table. Usage::
 
-    python scripts/bench_loader.py [--data DIR] [--repeat 3] [--work-ms 10] [--max-frames N]
+    python scripts/bench_loader.py [--data DIR] [--repeat 3] [--work-ms 10] [--max-frames N] [--decoders fast,opencv]
 """
 
 from __future__ import annotations
@@ -51,6 +55,13 @@ def _spin_gil(seconds: float) -> None:
 WORK = {"none": None, "spin": _spin_nogil, "spin-gil": _spin_gil}
 
 
+def _sequence(root: Path, decoder: str, **kwargs) -> TUMSequence:
+    seq = TUMSequence(root, **kwargs)
+    if decoder == "opencv":
+        seq._fast_decode = {"colour": False, "other": False}
+    return seq
+
+
 def _one_pass(seq: TUMSequence, work, work_s: float) -> tuple[float, int]:
     start = time.perf_counter()
     n = 0
@@ -73,10 +84,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work-ms", type=float, default=10.0, help="simulated compute per frame, milliseconds")
     parser.add_argument("--repeat", type=int, default=3, help="passes per setting; the best and median are reported")
     parser.add_argument("--max-frames", type=int, default=None, help="use only the first N frames of each sequence")
+    parser.add_argument("--decoders", default="fast,opencv",
+                        help="comma-separated: fast (the default loader) and/or opencv (OpenCV for every image)")
     parser.add_argument("--out", type=Path, default=RESULTS / "bench_loader.json")
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
+    decoders = [d.strip() for d in args.decoders.split(",") if d.strip()]
+    if not decoders or any(d not in ("fast", "opencv") for d in decoders):
+        parser.error(f"--decoders: expected fast and/or opencv, got {args.decoders!r}")
 
     machine = {
         "nproc": os.cpu_count(),
@@ -99,26 +115,32 @@ def main(argv: list[str] | None = None) -> int:
         _one_pass(TUMSequence(root, end=args.max_frames), None, 0.0)  # warm the page cache
         for work_name in args.work:
             for prefetch in args.prefetch:
-                seq = TUMSequence(root, prefetch=prefetch, end=args.max_frames)
-                times = []
+                seqs = {d: _sequence(root, d, prefetch=prefetch, end=args.max_frames) for d in decoders}
+                times: dict[str, list[float]] = {d: [] for d in decoders}
                 for _ in range(args.repeat):
-                    seconds, n = _one_pass(seq, WORK[work_name], args.work_ms / 1000.0)
-                    times.append(seconds)
-                results.append({
-                    "sequence": name,
-                    "frames": n,
-                    "image_size": [seq.camera.width, seq.camera.height],
-                    "work": work_name,
-                    "work_ms": 0.0 if work_name == "none" else args.work_ms,
-                    "prefetch": prefetch,
-                    "seconds": times,
-                    "fps_best": n / min(times),
-                    "fps_median": n / statistics.median(times),
-                })
-                print(f"{name:20s} work={work_name:8s} prefetch={prefetch}: {results[-1]['fps_median']:7.1f} frames/s (median)")
+                    for d in decoders:  # alternating, so drifting load hits both alike
+                        seconds, n = _one_pass(seqs[d], WORK[work_name], args.work_ms / 1000.0)
+                        times[d].append(seconds)
+                for d in decoders:
+                    seq = seqs[d]
+                    results.append({
+                        "sequence": name,
+                        "frames": n,
+                        "image_size": [seq.camera.width, seq.camera.height],
+                        "decoder": d,
+                        "fast_path_used": dict(seq._fast_decode),
+                        "work": work_name,
+                        "work_ms": 0.0 if work_name == "none" else args.work_ms,
+                        "prefetch": prefetch,
+                        "seconds": times[d],
+                        "fps_best": n / min(times[d]),
+                        "fps_median": n / statistics.median(times[d]),
+                    })
+                    print(f"{name:20s} {d:6s} work={work_name:8s} prefetch={prefetch}: "
+                          f"{results[-1]['fps_median']:7.1f} frames/s (median)")
 
     report = {
-        "benchmark": "TUMSequence iteration frames/s (decode to float tensors), prefetch thread vs none",
+        "benchmark": "TUMSequence iteration frames/s (decode to float tensors), prefetch thread vs none, fast PNG path vs OpenCV",
         "machine": machine,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "note": "timings on a shared machine under other load are contended; compare rows from one run only",
@@ -128,17 +150,19 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(json.dumps(report, indent=2) + "\n")
 
     print(f"\nmachine: {machine['cpu_model']}, {machine['cpus_usable']} usable CPUs; frames/s, median of {args.repeat}\n")
-    header = "| sequence | frames | consumer | " + " | ".join(f"prefetch {p}" for p in args.prefetch) + " |"
+    header = "| sequence | frames | decoder | consumer | " + " | ".join(f"prefetch {p}" for p in args.prefetch) + " |"
     print(header)
-    print("|" + "---|" * (3 + len(args.prefetch)))
-    rows: dict[tuple[str, str], dict[int, dict]] = {}
+    print("|" + "---|" * (4 + len(args.prefetch)))
+    rows: dict[tuple[str, str, str], dict[int, dict]] = {}
     for r in results:
-        rows.setdefault((r["sequence"], r["work"]), {})[r["prefetch"]] = r
-    for (name, work_name), by_p in rows.items():
+        rows.setdefault((r["sequence"], r["decoder"], r["work"]), {})[r["prefetch"]] = r
+    for (name, decoder, work_name), by_p in rows.items():
         any_r = next(iter(by_p.values()))
         label = "decode only" if work_name == "none" else f"{work_name} {args.work_ms:g} ms"
+        if decoder == "fast" and not any(any_r["fast_path_used"].values()):
+            decoder = "fast (declined: OpenCV)"
         cells = " | ".join(f"{by_p[p]['fps_median']:.1f}" if p in by_p else "-" for p in args.prefetch)
-        print(f"| {name} | {any_r['frames']} | {label} | {cells} |")
+        print(f"| {name} | {any_r['frames']} | {decoder} | {label} | {cells} |")
     print(f"\nwrote {args.out}")
     return 0
 
