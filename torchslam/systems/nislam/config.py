@@ -49,7 +49,9 @@ class LoopConfig:
     Attributes:
         enabled: look for loops at every new keyframe.
         orb_features: ORB features kept per keyframe (the paper: 1000).
-        min_separation: candidates must be at least this many keyframes older.
+        min_separation: candidates must be at least this many keyframes older (3: a camera
+            sweeping back and forth over one place, as on TUM fr1/xyz, meets its own keyframes
+            of the last sweep two or three keyframes back; README, "Loops on revisits").
         top_k: candidates verified per new keyframe.
         min_score: smallest place-recognition score of a candidate.
         min_psr: smallest KCC PSR for a verified loop.
@@ -128,7 +130,7 @@ class LoopConfig:
 
     enabled: bool = True
     orb_features: int = 1000
-    min_separation: int = 8
+    min_separation: int = 3
     top_k: int = 5
     min_score: float = 0.05
     min_psr: float = 30.0
