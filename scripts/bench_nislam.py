@@ -13,6 +13,12 @@ final map.
     python scripts/bench_nislam.py --quick         # smoke run
     python scripts/bench_nislam.py --settings default,features=learned --out scripts/results/features
                                                    # learned against hand-crafted KCC channels
+    python scripts/bench_nislam.py --revisit       # also each real sequence there and back
+
+``--revisit`` adds, for every real sequence, its there-and-back stand-in
+(``scripts/make_revisit.py``: forward, back, forward, back, written to a temporary folder of
+links) as the sequence ``<name>-there-and-back`` in the same split: the shipped sequences never
+come back to their places, the long ones the issues measure on do.
 """
 
 from __future__ import annotations
@@ -20,12 +26,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import tempfile
 import time
 from pathlib import Path
 
 import torch
 
 from _bench import RESULTS, time_calls
+from make_revisit import write_revisit
 from torchslam.config import config_from_dict
 from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
@@ -67,14 +75,24 @@ SYNTHETIC_KINDS = ("handheld", "translate", "orbit", "loop")
 RPE_FRAMES = (1, 10, 30)
 
 
-def _cases(data_root: Path, settings: list[str], quick: bool) -> list[tuple[str, str, str, str, object]]:
-    """(group, sequence name, attitude, setting, how to load it) for every case whose data exists."""
+def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | None = None) -> list[tuple[str, str, str, str, object]]:
+    """(group, sequence name, attitude, setting, how to load it) for every case whose data exists.
+
+    With ``revisit`` (a folder), each real sequence's there-and-back stand-in is written there
+    and added after it, in its split.
+    """
     cases = []
     for group, names in (("tuning", TUNING_REAL), ("held-out", HELD_OUT_REAL)):
         for name in names:
             if (data_root / name / "rgb.txt").is_file():
-                for att in ("groundtruth", "simulated"):
-                    cases += [(group, name, att, st, data_root / name) for st in settings]
+                folders = [(name, data_root / name)]
+                if revisit is not None:
+                    stand_in = revisit / f"{name}_palindrome"
+                    write_revisit(data_root / name, stand_in)
+                    folders.append((f"{name}-there-and-back", stand_in))
+                for label, folder in folders:
+                    for att in ("groundtruth", "simulated"):
+                        cases += [(group, label, att, st, folder) for st in settings]
     seeds = ((("tuning", TUNING_SEEDS[:1]), ("held-out", HELD_OUT_SEEDS[:1])) if quick
              else (("tuning", TUNING_SEEDS), ("held-out", HELD_OUT_SEEDS)))
     for group, group_seeds in seeds:
@@ -84,9 +102,9 @@ def _cases(data_root: Path, settings: list[str], quick: bool) -> list[tuple[str,
     return cases
 
 
-def accuracy(data_root: Path, quick: bool, settings: list[str]) -> list[dict]:
+def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | None = None) -> list[dict]:
     rows = []
-    for group, name, att, setting, source in _cases(data_root, settings, quick):
+    for group, name, att, setting, source in _cases(data_root, settings, quick, revisit):
         if isinstance(source, tuple):
             kind, seed = source
             seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind, seed=seed))
@@ -226,6 +244,8 @@ def main() -> None:
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--settings", default=",".join(SETTINGS), help=f"comma-separated subset of {', '.join(SETTINGS)}")
     ap.add_argument("--no-batched", action="store_true", help="skip the batched KCC stage timings")
+    ap.add_argument("--revisit", action="store_true",
+                    help="also run each real sequence there and back (scripts/make_revisit.py, in a temporary folder)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -239,7 +259,9 @@ def main() -> None:
     unknown = [x for x in settings if x not in SETTINGS]
     if unknown:
         ap.error(f"--settings: unknown {', '.join(unknown)}; choose from {', '.join(SETTINGS)}")
-    result["accuracy"] = accuracy(root, args.quick, settings)
+    with tempfile.TemporaryDirectory(prefix="torchslam-revisit-") as tmp:
+        result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None)
+    result["revisit"] = args.revisit
     sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
     result["batched_kcc"] = []
     if not args.no_batched:

@@ -7,7 +7,10 @@ script plays a TUM-layout sequence forward, backward, forward and backward again
 n-2..0, 1..n-1, n-2..0: about 4 n frames) into a new folder of symbolic links to the original
 images, re-timed at the original frame rate, with the ground truth of each source frame at its
 new stamp. Colour and depth share each new stamp (the original pairs' offset is dropped), and
-there is no accelerometer file, so use ``attitude=groundtruth`` or ``simulated`` on it.
+the ground truth written there is the pose at the source frame's depth instant, where its
+geometry was taken (TUM fr1 takes colour about 15 ms after depth; at the camera's speed the
+colour instant's pose would put millimetres of timing error into every frame). There is no
+accelerometer file, so use ``attitude=groundtruth`` or ``simulated`` on it.
 
 The images are real; the motion reverses at each end within one frame, which the constant-
 velocity prediction misses once. Revisited places show the very same images, so the loops it
@@ -28,6 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from _bench import data_root
 from torchslam.data import TUMSequence
@@ -45,9 +49,14 @@ def revisit_order(n: int) -> list[int]:
 def write_revisit(src: Path, dst: Path, fps: float = 30.0, start: float = 1.0e9) -> int:
     """Write ``dst`` (created, must be empty or missing) from the TUM folder ``src``; return its frame count."""
     seq = TUMSequence(src)
-    if not bool(seq.gt_valid.all()):
-        missing = int((~seq.gt_valid).sum())
-        raise SystemExit(f"{src}: {missing} frame(s) have no ground truth; the stand-in needs it for every frame")
+    reference = seq.groundtruth_raw if seq.groundtruth_raw is not None else seq.groundtruth
+    if reference is None:
+        raise SystemExit(f"{src}: no ground truth; the stand-in needs it for every frame")
+    # The pose at each frame's depth instant (its geometry), bridging gaps as the reader does.
+    T_all, valid = reference.interpolate(seq.depth_timestamps.to(torch.float64), max_gap=seq.gt_max_gap)
+    if not bool(valid.all()):
+        missing = int((~valid).sum())
+        raise SystemExit(f"{src}: {missing} frame(s) have no ground truth at their depth instant; the stand-in needs it for every frame")
     if dst.exists() and any(dst.iterdir()):
         raise SystemExit(f"{dst}: exists and is not empty")
     (dst / "rgb").mkdir(parents=True, exist_ok=True)
@@ -56,7 +65,6 @@ def write_revisit(src: Path, dst: Path, fps: float = 30.0, start: float = 1.0e9)
         os.symlink((src / "calibration.txt").resolve(), dst / "calibration.txt")
     order = revisit_order(len(seq))
     rgb_lines, depth_lines, gt_lines = ["# colour images (there-and-back stand-in)"], ["# depth maps"], ["# ground truth"]
-    T_all = seq._T_wc  # ground truth at every frame's stamp (interpolated), (n, 4, 4)
     for k, i in enumerate(order):
         t = start + k / fps
         rgb_name = f"rgb/{t:.6f}{Path(seq.rgb_paths[i]).suffix}"
