@@ -62,6 +62,35 @@ def test_dense_tracks_synthetic_sequence():
     assert a.stats["rmse"] < 0.01, a.stats
 
 
+@pytest.mark.parametrize("orb_start", [True, False])
+def test_dense_registration_started_far_off_is_started_again_from_orb(monkeypatch, orb_start):
+    # One frame's motion prior is put 25 cm and 20 degrees off (a sudden reversal of fast
+    # motion): the dense registration from there fails or keeps few correspondences, and the
+    # ORB start recovers the frame's pose; without it the frame counts as a tracking failure
+    # or a weak registration whose error stays.
+    seq = generate_sequence(SyntheticConfig(frames=16, trajectory="translate", seed=2, **SMALL))
+    original = gc.GCSlam._predicted_T_kf
+    calls = {"n": 0}
+
+    def far_off(self, t):
+        T = original(self, t)
+        calls["n"] += 1
+        if calls["n"] == 8:
+            return T @ se3_exp(torch.tensor([0.25, 0.0, 0.0, 0.0, 0.35, 0.0], dtype=T.dtype))
+        return T
+
+    monkeypatch.setattr(gc.GCSlam, "_predicted_T_kf", far_off)
+    result, a = _run(seq, frontend="dense", loops=False, dense_orb_start=orb_start)
+    tracking = result.output.metrics["tracking"]
+    if orb_start:
+        assert tracking["orb_starts"] == 1 and tracking["orb_starts_kept"] == 1, tracking
+        assert tracking["tracking_failures"] == 0
+        assert a.stats["max"] < 0.01, a.stats
+    else:
+        assert tracking["orb_starts"] == 0
+        assert tracking["tracking_failures"] >= 1 or a.stats["max"] > 0.02, (tracking, a.stats)
+
+
 def test_loop_closure_is_found_accepted_and_lowers_error():
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL))
     with_loops, a_loop = _run(seq)

@@ -45,6 +45,12 @@ class GCSlamConfig:
             of the most a frame kept to the current keyframe makes the previous tracked frame (if
             it kept more) a keyframe, and is registered to that one instead (torchslam's, for
             blurred stretches; 0: off). Such a promoted keyframe joins MILD but proposes no loops.
+        dense_orb_start: with the dense front-end, a registration that fails or keeps fewer than
+            ``keyframe_weak_ratio`` of the best correspondence count to the current keyframe is
+            started again from an ORB registration of the frame to the keyframe, and the one
+            with more correspondences is kept (torchslam's; the sparse front-end's guided
+            matches fall back to brute force alike). A start from the motion prior that is far
+            off, as at a sudden reversal of fast motion, otherwise converges to a wrong pose.
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
@@ -111,6 +117,7 @@ class GCSlamConfig:
     keyframe_displacement: float = 0.1
     keyframe_sample_stride: int = 16
     keyframe_weak_ratio: float = 0.5
+    dense_orb_start: bool = True
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3

@@ -140,7 +140,7 @@ class GCSlam:
         self.frames = FrameLog()
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0,
-                       "promoted_keyframes": 0}
+                       "promoted_keyframes": 0, "orb_starts": 0, "orb_starts_kept": 0}
         self.inliers: list[int] = []
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
@@ -219,6 +219,8 @@ class GCSlam:
         T_pred = self._predicted_T_kf(frame.timestamp)
         reg = self.frontend.register(kf, view, T_pred)
         clock.lap("registration")
+        if self._needs_orb_start(kf, reg):
+            reg = self._orb_start(kf, view, reg, clock)
         if reg.ok and self._weak(reg):
             reg = self._promote_previous(view, T_pred, clock)
             kf = self.keyframes[-1]
@@ -256,6 +258,28 @@ class GCSlam:
         ratio, prev = self.cfg.keyframe_weak_ratio, self._previous
         return (ratio > 0 and prev is not None and reg.correspondences < ratio * self._best_correspondences
                 and prev[2].correspondences > reg.correspondences)
+
+    def _needs_orb_start(self, kf: _TrackKeyframe, reg: Registration) -> bool:
+        """Whether a dense registration is to be started again from ORB (``dense_orb_start``):
+        it failed or kept fewer than ``keyframe_weak_ratio`` of the best count to this keyframe."""
+        if not self.cfg.dense_orb_start or kf.dense is None or self._best_correspondences <= 0:
+            return False
+        return not reg.ok or reg.correspondences < self.cfg.keyframe_weak_ratio * self._best_correspondences
+
+    def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch) -> Registration:
+        """The dense registration again, started from the frame's ORB registration to the keyframe
+        (brute-force matching, as the loops'); the result with more correspondences is kept."""
+        self._features(view, clock)
+        res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self.generator)
+        self.counts["orb_starts"] += 1
+        again = None
+        if bool(res.success[0]):
+            again = self.frontend.register(kf, view, res.T_ij[0].to(torch.float64))
+        clock.lap("registration")
+        if again is not None and again.ok and (not reg.ok or again.correspondences > reg.correspondences):
+            self.counts["orb_starts_kept"] += 1
+            return again
+        return reg
 
     def _promote_previous(self, view: PreparedFrame, T_pred: Tensor, clock: _Stopwatch) -> Registration:
         """Make the previous tracked frame a keyframe and register the frame to it instead.
