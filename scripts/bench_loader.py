@@ -55,13 +55,6 @@ def _spin_gil(seconds: float) -> None:
 WORK = {"none": None, "spin": _spin_nogil, "spin-gil": _spin_gil}
 
 
-def _sequence(root: Path, decoder: str, **kwargs) -> TUMSequence:
-    seq = TUMSequence(root, **kwargs)
-    if decoder == "opencv":
-        seq._fast_decode = {"colour": False, "other": False}
-    return seq
-
-
 def _one_pass(seq: TUMSequence, work, work_s: float) -> tuple[float, int]:
     start = time.perf_counter()
     n = 0
@@ -115,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         _one_pass(TUMSequence(root, end=args.max_frames), None, 0.0)  # warm the page cache
         for work_name in args.work:
             for prefetch in args.prefetch:
-                seqs = {d: _sequence(root, d, prefetch=prefetch, end=args.max_frames) for d in decoders}
+                seqs = {d: TUMSequence(root, prefetch=prefetch, end=args.max_frames, fast_png=d == "fast") for d in decoders}
                 times: dict[str, list[float]] = {d: [] for d in decoders}
                 for _ in range(args.repeat):
                     for d in decoders:  # alternating, so drifting load hits both alike
@@ -128,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                         "frames": n,
                         "image_size": [seq.camera.width, seq.camera.height],
                         "decoder": d,
-                        "fast_path_used": dict(seq._fast_decode),
+                        "fast_path_used": seq.fast_png_streams,
                         "work": work_name,
                         "work_ms": 0.0 if work_name == "none" else args.work_ms,
                         "prefetch": prefetch,

@@ -34,8 +34,8 @@ import numpy as np
 import torch
 
 from _bench import data_root
-from torchslam.data import TUMSequence
-from torchslam.geometry import rotmat_to_quat_xyzw
+from torchslam.data import Trajectory, TUMSequence
+from torchslam.data.trajectory import write_tum_trajectory
 
 
 def revisit_order(n: int) -> list[int]:
@@ -64,21 +64,18 @@ def write_revisit(src: Path, dst: Path, fps: float = 30.0, start: float = 1.0e9)
     if (src / "calibration.txt").is_file():
         os.symlink((src / "calibration.txt").resolve(), dst / "calibration.txt")
     order = revisit_order(len(seq))
-    rgb_lines, depth_lines, gt_lines = ["# colour images (there-and-back stand-in)"], ["# depth maps"], ["# ground truth"]
-    for k, i in enumerate(order):
-        t = start + k / fps
+    times = start + torch.arange(len(order), dtype=torch.float64) / fps
+    rgb_lines, depth_lines = ["# colour images (there-and-back stand-in)"], ["# depth maps"]
+    for t, i in zip(times.tolist(), order):
         rgb_name = f"rgb/{t:.6f}{Path(seq.rgb_paths[i]).suffix}"
         depth_name = f"depth/{t:.6f}{Path(seq.depth_paths[i]).suffix}"
         os.symlink(Path(seq.rgb_paths[i]).resolve(), dst / rgb_name)
         os.symlink(Path(seq.depth_paths[i]).resolve(), dst / depth_name)
         rgb_lines.append(f"{t:.6f} {rgb_name}")
         depth_lines.append(f"{t:.6f} {depth_name}")
-        T = T_all[i]
-        q = rotmat_to_quat_xyzw(T[:3, :3]).tolist()
-        p = T[:3, 3].tolist()
-        gt_lines.append(f"{t:.6f} " + " ".join(f"{v:.8f}" for v in p + q))
-    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines), ("groundtruth.txt", gt_lines)):
+    for name, lines in (("rgb.txt", rgb_lines), ("depth.txt", depth_lines)):
         (dst / name).write_text("\n".join(lines) + "\n")
+    write_tum_trajectory(dst / "groundtruth.txt", Trajectory(times, T_all[order]), header="ground truth (there-and-back stand-in)")
     return len(order)
 
 

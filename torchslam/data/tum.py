@@ -281,6 +281,8 @@ class TUMSequence:
             colour image as it is.
         pin_memory: decode into page-locked host memory, so that a CUDA system's copy of each
             frame to the GPU runs without staging and without blocking the host (needs CUDA).
+        fast_png: decode simple PNGs on ``png.decode_png`` (the same pixels as OpenCV, faster);
+            False decodes every image with OpenCV.
         gt_max_gap: largest spacing of the two ground-truth poses bracketing a frame across
             which its pose is interpolated, seconds.
 
@@ -331,6 +333,7 @@ class TUMSequence:
         gt_max_gap: float = 0.2,
         register_colour: bool = True,
         pin_memory: bool = False,
+        fast_png: bool = True,
     ) -> None:
         root = Path(root)
         max_gap = _check_seconds(max_gap, "max_gap", allow_zero=True)
@@ -342,6 +345,8 @@ class TUMSequence:
         self.prefetch = _check_int(prefetch, "prefetch", 0)
         if not isinstance(pin_memory, bool):
             raise ConfigError(f"pin_memory: expected True or False, got {pin_memory!r}")
+        if not isinstance(fast_png, bool):
+            raise ConfigError(f"fast_png: expected True or False, got {fast_png!r}")
         if pin_memory and not torch.cuda.is_available():
             raise ConfigError("pin_memory: page-locked frames are for copies to a CUDA device, and none is available")
         self.pin_memory = pin_memory
@@ -377,7 +382,8 @@ class TUMSequence:
         self.colour_source = calib.colour_source if use_colour else None
         self._colour_maps = colour_to_depth_maps(self.camera, self.colour_camera) if use_colour else None
         # Per stream: decode PNGs on the fast path (``_read_image``) until one is declined.
-        self._fast_decode = {"colour": png_available(), "other": png_available()}
+        fast = fast_png and png_available()
+        self._fast_decode = {"colour": fast, "other": fast}
 
         rgb_list, depth_list = root / RGB_LIST, root / DEPTH_LIST
         rgb_t, rgb_f, rgb_lines = _read_stamped_list(rgb_list, "timestamp filename")
@@ -480,6 +486,12 @@ class TUMSequence:
             )
             return None
         return R0
+
+    @property
+    def fast_png_streams(self) -> dict[str, bool]:
+        """Whether the colour and the other (depth) images still decode on the PNG fast path
+        (``fast_png``): a stream leaves it at the first image the path declines."""
+        return dict(self._fast_decode)
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])
