@@ -10,6 +10,7 @@ from torchslam.geometry import (
     PinholeCamera,
     backproject_depth,
     distort_normalized,
+    undistort_pixels,
     undistorted_rays,
 )
 
@@ -131,3 +132,25 @@ def test_undistorted_rays_with_a_step_are_the_strided_full_rays_and_cached():
     assert torch.equal(undistorted_rays(cam, step=2), full[::2, ::2].reshape(-1, 2))
     with pytest.raises(ConfigError, match="step"):
         undistorted_rays(cam, step=0)
+
+
+def test_undistort_pixels_host_path_matches_torch_bit_for_bit(monkeypatch):
+    """The NumPy Newton steps on the host (in chunks) repeat the torch steps' arithmetic: the
+    same rays to the last bit, for 5- and 8-coefficient models, across a chunk boundary."""
+    import torchslam.geometry.camera as camera_module
+
+    g = torch.Generator().manual_seed(3)
+    for d in ((0.2624, -0.9531, -0.0054, 0.0026, 1.1633), (0.1, -0.05, 0.001, -0.002, 0.01, 0.02, -0.01, 0.005)):
+        cam = PinholeCamera(520.0, 516.0, 320.0, 240.0, 640, 480, distortion=d)
+        uv = torch.rand(camera_module._NEWTON_CHUNK + 1000, 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0], dtype=torch.float64)
+        for steps in (1, 4):  # one step shows the Jacobian's rounding; after several, the fixed point
+            host = undistort_pixels(uv, cam, newton_steps=steps)
+            with monkeypatch.context() as m:
+                m.setattr(camera_module, "numpy_viewable", lambda x: False)
+                dev = undistort_pixels(uv, cam, newton_steps=steps)
+            assert torch.equal(host, dev), steps
+        # From a start far off, where the Jacobian's rounding shows in every step.
+        xd = torch.stack([(uv[:, 0] - cam.cx) / cam.fx, (uv[:, 1] - cam.cy) / cam.fy], -1)
+        start = xd + 0.01 * torch.randn(xd.shape, generator=g, dtype=torch.float64)
+        x, y = camera_module._newton_numpy(start[:, 0].numpy().copy(), start[:, 1].numpy().copy(), xd.numpy(), d, 2)
+        assert torch.equal(torch.from_numpy(np.stack([x, y], -1)), camera_module._newton_torch(start, xd, d, 2))

@@ -366,6 +366,32 @@ def test_host_refinement_matches_the_device_path(monkeypatch):
     assert int(host[1][:3].sum()) > 500, int(host[1][:3].sum())  # the planted inliers are found
 
 
+def test_host_isometry_filter_matches_the_device_path(monkeypatch):
+    """The isometry filter in NumPy draws the torch path's partners and keeps the same matches,
+    bit for bit: pairs of different sizes, outliers, padding, and pairs left with fewer than two
+    matches (which keep none)."""
+    import torchslam.registration.sparse as sparse_module
+
+    g = torch.Generator().manual_seed(21)
+    cfg = SparseConfig()
+    cases = []
+    for B, M in ((1, 300), (5, 120), (3, 7), (2, 1), (4, 0)):
+        T = torch.stack([_random_pose(g) for _ in range(B)])
+        p_i, p_j, _ = _planted(g, B, M, T, outlier_frac=0.4, noise=0.002)
+        valid = torch.rand(B, M, generator=g) > 0.15
+        if B > 1 and M > 1:
+            valid[1] = False
+            valid[1, 0] = True  # one candidate: no partner to test against
+        cases.append((p_i, p_j, valid))
+    host = [isometry_filter(p_i, p_j, v, cfg) for p_i, p_j, v in cases]
+    monkeypatch.setattr(sparse_module, "numpy_viewable", lambda x: False)
+    for (p_i, p_j, v), kept in zip(cases, host):
+        assert torch.equal(kept, isometry_filter(p_i, p_j, v, cfg))
+        assert not bool((kept & ~v).any())
+    kept = host[0][0]
+    assert 0.4 * 300 < int(kept.sum()) < 300  # the planted outliers are mostly removed, the inliers kept
+
+
 def test_refine_keeps_the_pose_of_a_degenerate_pair():
     g = torch.Generator().manual_seed(8)
     T = _random_pose(g)[None]

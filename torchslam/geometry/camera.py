@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..cache import FifoCache
+from ..devices import numpy_viewable
 from ..errors import ConfigError, ShapeError, check_float, check_shape
 
 __all__ = [
@@ -232,9 +233,20 @@ def undistort_pixels(uv: Tensor, camera: PinholeCamera, newton_steps: int = 8) -
     else:  # OpenCV 5: undistortPoints takes the termination criteria
         start = cv2.undistortPoints(pixels, K, d, None, None, None, criteria)
     xy = torch.from_numpy(np.ascontiguousarray(start.reshape(-1, 2), dtype=np.float64)).to(uv.device)
-    for _ in range(newton_steps):
-        res = distort_normalized(xy, camera.distortion) - xd
-        J = _distortion_jacobian(xy, camera.distortion)  # (K, 2, 2)
+    if numpy_viewable(xy) and numpy_viewable(xd):
+        out = xy.numpy().copy()
+        for c in range(0, len(out), _NEWTON_CHUNK):  # a chunk's temporaries stay in cache
+            part = out[c : c + _NEWTON_CHUNK]
+            part[:, 0], part[:, 1] = _newton_numpy(part[:, 0], part[:, 1], xd.numpy()[c : c + _NEWTON_CHUNK], camera.distortion, newton_steps)
+        return torch.from_numpy(out)
+    return _newton_torch(xy, xd, camera.distortion, newton_steps)
+
+
+def _newton_torch(xy: Tensor, xd: Tensor, distortion: tuple[float, ...], steps: int) -> Tensor:
+    """``steps`` Newton steps from ``xy`` (K, 2) towards the rays that distort to ``xd`` (K, 2)."""
+    for _ in range(steps):
+        res = distort_normalized(xy, distortion) - xd
+        J = _distortion_jacobian(xy, distortion)  # (K, 2, 2)
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
         det = torch.where(det.abs() > 1e-12, det, torch.full_like(det, math.inf))  # a fold: no step
         step = torch.stack(
@@ -242,6 +254,41 @@ def undistort_pixels(uv: Tensor, camera: PinholeCamera, newton_steps: int = 8) -
         )
         xy = xy - step / det[:, None]
     return xy
+
+
+_NEWTON_CHUNK = 8192  # points per chunk of undistort_pixels' NumPy Newton steps
+
+
+def _newton_numpy(x: np.ndarray, y: np.ndarray, xd: np.ndarray, distortion: tuple[float, ...], steps: int):
+    """``undistort_pixels``' Newton steps in NumPy on coordinate planes, the same arithmetic
+    expression by expression (so the same bits): over the 307,200 pixels of a 640x480 camera the
+    torch version's interleaving of planes into (K, 2) and (K, 2, 2) tensors cost most of the
+    0.6 s that a run's start spent on its camera's rays."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
+    tx, ty = xd[:, 0], xd[:, 1]
+    for _ in range(steps):
+        r2 = x * x + y * y
+        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        # The residual of the forward model (distort_planes' expressions).
+        radial = num / den if (k4 or k5 or k6) else num
+        xy2 = 2 * x * y
+        res0 = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) - tx
+        res1 = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 - ty
+        # The Jacobian (_distortion_jacobian's expressions).
+        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+        radial = num / den
+        drad = (dnum * den - num * dden) / (den * den)
+        j00 = radial + x * drad * 2 * x + 2 * p1 * y + 6 * p2 * x
+        j01 = x * drad * 2 * y + 2 * p1 * x + 2 * p2 * y
+        j10 = y * drad * 2 * x + 2 * p1 * x + 2 * p2 * y
+        j11 = radial + y * drad * 2 * y + 6 * p1 * y + 2 * p2 * x
+        det = j00 * j11 - j01 * j10
+        det = np.where(np.abs(det) > 1e-12, det, math.inf)  # a fold: no step
+        x = x - (j11 * res0 - j01 * res1) / det
+        y = y - (j00 * res1 - j10 * res0) / det
+    return x, y
 
 
 def _invert_distortion(camera: PinholeCamera, step: int) -> Tensor:

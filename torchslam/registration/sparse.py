@@ -454,6 +454,8 @@ def _isometry_filter(p_i: Tensor, p_j: Tensor, valid: Tensor, cfg: SparseConfig,
     B, M = valid.shape
     if M == 0 or cfg.isometry_rounds == 0:
         return valid.clone()
+    if p_i.dtype == p_j.dtype and all(numpy_viewable(x) for x in (p_i, p_j, valid)):
+        return torch.from_numpy(_isometry_filter_numpy(p_i.numpy(), p_j.numpy(), valid.numpy(), cfg, seed))
     dev = p_i.device
     R, N = cfg.isometry_rounds, cfg.isometry_partners
     m_idx = torch.arange(M, device=dev)[:, None]  # (M, 1)
@@ -485,6 +487,42 @@ def _isometry_filter(p_i: Tensor, p_j: Tensor, valid: Tensor, cfg: SparseConfig,
         passed = (di2 < hi2 * dj2) & (di2 > lo2 * dj2) & (dj2 > 0)  # Eq. (22) for one partner
         kept = kept & (count >= 2)[:, None] & passed.any(-1)
     return kept
+
+
+def _isometry_filter_numpy(p_i: np.ndarray, p_j: np.ndarray, valid: np.ndarray, cfg: SparseConfig, seed: int) -> np.ndarray:
+    """:func:`_isometry_filter` on host arrays, the same partners and arithmetic (so the same
+    result), computed for the kept matches only: a kept match's partners are always kept ones,
+    and the torch path's values for the others are masked out. All pairs at once: the kept
+    matches of every pair in one flat list, each pair's a contiguous run of it."""
+    B, M = valid.shape
+    R, N = cfg.isometry_rounds, cfg.isometry_partners
+    u_all = _uniform_numpy(seed, _STREAM_ISO + torch.arange(R)[:, None, None], (torch.arange(M)[:, None], torch.arange(N)[None, :]))
+    planes = np.concatenate([p_i, p_j], -1).reshape(B * M, 6).T.copy()  # (6, B * M) contiguous rows
+    tol = cfg.isometry_tol * planes[2]
+    lo2 = np.where(tol < 1, (1 - tol) ** 2, -1.0)
+    hi2 = (1 + tol) ** 2
+    kept = valid.reshape(-1).copy()
+    for r in range(R):
+        at = np.flatnonzero(kept)  # flat positions of the kept matches, pair by pair
+        if not len(at):
+            break
+        pair = at // M
+        count = np.bincount(pair, minlength=B)
+        first = (np.cumsum(count) - count)[pair]  # where each kept match's pair starts in ``at``
+        n = count[pair]
+        rank = np.arange(len(at)) - first
+        # Uniform over the other kept matches of the pair: count - 1 ranks, one's own skipped.
+        draw = np.floor(u_all[r][at % M] * np.maximum(n - 1, 0)[:, None]).astype(np.int64)
+        draw += draw >= rank[:, None]
+        partner = at[first[:, None] + np.minimum(draw, (n - 1)[:, None])]  # (K, N); clamped only where n < 2
+        mine = planes[:, at]
+        d = mine[:, :, None] - planes[:, partner]  # (6, K, N)
+        d *= d
+        di2 = d[0] + d[1] + d[2]
+        dj2 = d[3] + d[4] + d[5]
+        passed = (di2 < hi2[at, None] * dj2) & (di2 > lo2[at, None] * dj2) & (dj2 > 0)  # Eq. (22) for one partner
+        kept[at] = passed.any(-1) & (n >= 2)
+    return kept.reshape(B, M)
 
 
 def isometry_filter(
