@@ -857,21 +857,27 @@ def _fill_colour(colour: Tensor, has: Tensor, want: Tensor, rounds: int = 16) ->
     c = np.ascontiguousarray(colour.detach().cpu().to(torch.float64).permute(1, 2, 0).numpy())  # (H, W, 3), a copy
     got = has.cpu().numpy().copy()
     wanted = want.cpu().numpy()
+    # The coloured pixels' colours and a 1 (zero elsewhere), kept up to date pixel by pixel as
+    # pixels are filled (rewriting the whole strided image each round cost most of its time).
     stack = np.empty(c.shape[:2] + (4,), dtype=np.float64)
+    np.multiply(c, got[..., None], out=stack[..., :3])
+    stack[..., 3] = got
     for _ in range(rounds):
         todo = wanted & ~got
         if not todo.any():
             break
-        np.multiply(c, got[..., None], out=stack[..., :3])
-        stack[..., 3] = got
         # 3x3 sums of the coloured pixels' colours and of their count (zero outside).
         sums = cv2.boxFilter(stack, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        count = sums[..., 3]
-        new = todo & (count > 0)
-        if not new.any():
+        new = np.flatnonzero(todo & (sums[..., 3] > 0))  # as flat indices: one mask scan, then gathers
+        if not len(new):
             break  # nothing reachable is left: further rounds would not change anything
-        c[new] = sums[..., :3][new] / count[new][:, None]
-        got |= new
+        at = sums.reshape(-1, 4)[new]
+        filled = at[:, :3] / at[:, 3:]
+        c.reshape(-1, 3)[new] = filled
+        at[:, :3] = filled
+        at[:, 3] = 1.0
+        stack.reshape(-1, 4)[new] = at
+        got.reshape(-1)[new] = True
     return torch.from_numpy(c).permute(2, 0, 1), torch.from_numpy(got)
 
 
