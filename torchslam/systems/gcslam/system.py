@@ -57,7 +57,7 @@ from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
 from ...devices import numpy_viewable
 from ...geometry import (
-    PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
+    PinholeCamera, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
     undistorted_rays,
 )
 from ...registration.dense import DenseFrame, dense_images
@@ -377,6 +377,23 @@ class GCSlam:
         self.frames.record(frame, kf, T, prior)
         self._last_T_kf = T
 
+    def _points_at(self, depth: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
+        """float64 3-D points (P, 3) of the row-major ``pixels`` (K,) with valid depth up to
+        ``max_depth``, and those pixels (P,): ``backproject_depth``'s points at them, the same
+        arithmetic per pixel."""
+        z = depth.reshape(-1)[pixels].to(torch.float64)
+        keep = torch.isfinite(z) & (z > 0) & (z <= self.cfg.max_depth)
+        pixels, z = pixels[keep], z[keep]
+        if self.rays is not None:
+            xy = self.rays.to(torch.float64)[pixels]
+            x, y = xy[:, 0], xy[:, 1]
+        else:
+            W = depth.shape[-1]
+            fx, fy, cx, cy = self.intrinsics[0].to(torch.float64).unbind(-1)
+            x = ((pixels % W).to(torch.float64) - cx) / fx
+            y = (torch.div(pixels, W, rounding_mode="floor").to(torch.float64) - cy) / fy
+        return torch.stack([x * z, y * z, z], -1), pixels
+
     def _new_keyframe(
         self, frame: Frame, view: PreparedFrame, reference: int | None, T_ref: Tensor | None, stats: PairStats | None,
         relocalized: bool = False, promote: bool = False,
@@ -390,19 +407,16 @@ class GCSlam:
         feats = self.frontend.features(view)
         rgb, depth = view.rgb, view.depth
         kid = len(self.keyframes)
-        points, valid = backproject_depth(depth[None].to(torch.float64), self.intrinsics, rays=self.rays)
-        points, valid = points[0], valid[0] & (points[0, :, 2] <= cfg.max_depth)
         H, W = depth.shape[-2:]
         idx = torch.arange(H * W, device=self.device).view(H, W)
         s = cfg.keyframe_sample_stride
-        sample = idx[s // 2 :: s, s // 2 :: s].reshape(-1)
-        sample = sample[valid[sample]]
+        # Only the sample and map pixels are lifted (a few percent of the image).
+        sample_points, sample = self._points_at(depth, idx[s // 2 :: s, s // 2 :: s].reshape(-1))
         # Their pixels as ``_displacement`` projects them (pinhole, along the undistorted rays),
         # so the displacement is exactly 0 at the keyframe's own pose even with lens distortion
         # (the raw pixel grid differs from that by pixels under strong distortion).
-        pix = project_points(points[sample][None], self.intrinsics)[0][0]
-        m = idx[:: cfg.map_stride, :: cfg.map_stride].reshape(-1)
-        m = m[valid[m]]
+        pix = project_points(sample_points[None], self.intrinsics)[0][0]
+        map_points, m = self._points_at(depth, idx[:: cfg.map_stride, :: cfg.map_stride].reshape(-1))
         colors = rgb.reshape(3, -1)[:, m].T.float()
         anchor = None
         if reference is None and len(self.frames):
@@ -411,7 +425,7 @@ class GCSlam:
         if self.keyframes:
             self.keyframes[-1].dense = None  # only the current keyframe is registered against densely
         self.keyframes.append(
-            _TrackKeyframe(kid, frame.index, feats, points[sample], pix, view.dense, points[m].float(), colors)
+            _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors)
         )
         images = None
         if cfg.dense_pairs:
