@@ -484,6 +484,28 @@ def test_guided_match_with_a_window_over_everything_equals_brute_force():
     assert torch.equal(a.inliers, b.inliers) and torch.equal(a.T_ij, b.T_ij)
 
 
+def test_host_guided_match_equals_the_device_path(monkeypatch):
+    """The guided matching in NumPy on the host gives the torch path's matches exactly: batches
+    of unequal pairs, keypoints without depth, windows from a few pixels to all of the image, and
+    predictions that put frame i's points behind the camera."""
+    import torchslam.registration.sparse as sparse_module
+
+    g = torch.Generator().manual_seed(26)
+    poses = [_random_pose(g) for _ in range(3)]
+    pairs = [_planted_features(g, n, ei, ej, T, 0.4, invalid_j=7)[:2] for (n, ei, ej), T in zip(((200, 60, 40), (120, 30, 150), (80, 0, 5)), poses)]
+    fi, fj = [p[0] for p in pairs], [p[1] for p in pairs]
+    preds = [torch.stack(poses), torch.stack(poses) @ se3_exp(0.02 * torch.randn(3, 6, generator=g, dtype=F64)),
+             se3_exp(torch.tensor([[0.0, 0.0, 50.0, 0.0, 0.0, 0.0]] * 3, dtype=F64))]
+    # Hamming limits of 50 bits and 128 (where random descriptors often sit exactly at the limit).
+    cases = [(r, d) for r in (3.0, 20.0, 1e6) for d in (50, 128)]
+    host = [[guided_match(fi, fj, T, focal=500.0, radius=r, max_distance=d) for r, d in cases] for T in preds]
+    monkeypatch.setattr(sparse_module, "numpy_viewable", lambda x: False)
+    for T, got in zip(preds, host):
+        for (r, d), idx in zip(cases, got):
+            assert torch.equal(idx, guided_match(fi, fj, T, focal=500.0, radius=r, max_distance=d)), (r, d)
+    assert int((host[0][2] >= 0).sum()) > 200 and int((host[2][4] >= 0).sum()) == 0  # matches found; none behind the camera
+
+
 def test_guided_match_finds_the_planted_matches_at_the_predicted_positions():
     g = torch.Generator().manual_seed(22)
     T = _random_pose(g)

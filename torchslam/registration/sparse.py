@@ -54,6 +54,7 @@ from torch.nn.utils.rnn import pad_sequence
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..devices import flat_nonzero, index_select, is_host, numpy_viewable, repeat_counts
 from ..fastgo import PairStats
+from ..features.matching import _NP_POPCOUNT
 from ..features import (
     MatchBackend,
     ORBConfig,
@@ -933,6 +934,10 @@ def _guided_index(
         return none
     R, t = T_pred[:, :3, :3], T_pred[:, None, :3, 3]
     q = (pts_i - t) @ R  # (B, Ki, 3) frame-i points in frame j: p_j = R^T (p_i - t)
+    if _NP_POPCOUNT is not None and all(numpy_viewable(x) for x in (q, valid_i, desc_i, xy_j, valid_j, desc_j)):
+        return torch.from_numpy(_guided_index_numpy(
+            q.numpy(), valid_i.numpy(), desc_i.numpy(), xy_j.numpy(), valid_j.numpy(), desc_j.numpy(), focal, radius, max_distance
+        ))
     z = q[..., 2]
     front = valid_i & (z > 1e-6)
     uv_i = focal * q[..., :2] / torch.where(front, z, torch.ones_like(z))[..., None]
@@ -1001,6 +1006,87 @@ def _guided_index(
     best.scatter_reduce_(0, query, code, reduce="amin")
     keep = (best // Ki) <= max_distance
     return torch.where(keep, best % Ki, torch.full_like(best, -1)).reshape(B, Kj)
+
+
+def _guided_index_numpy(
+    q: np.ndarray, valid_i: np.ndarray, desc_i: np.ndarray, xy_j: np.ndarray, valid_j: np.ndarray, desc_j: np.ndarray,
+    focal: float, radius: float, max_distance: int,
+) -> np.ndarray:
+    """:func:`_guided_index` after the frame-i points are moved (``q``, (B, Ki, 3)), in NumPy on
+    the host: the same cells, candidates and float64 arithmetic (so the same matches), the
+    bits counted by NumPy's popcount and each query's nearest candidate taken by one segmented
+    minimum (a query's candidates are consecutive) instead of a scatter. A few dozen operations
+    on the candidate lists, where torch's fixed cost per operation was a large share."""
+    B, Ki = valid_i.shape
+    Kj = valid_j.shape[1]
+    none = np.full((B, Kj), -1, dtype=np.int64)
+    if not valid_j.any():
+        return none
+    z = q[..., 2]
+    front = valid_i & (z > 1e-6)
+    uv_i = focal * q[..., :2] / np.where(front, z, 1.0)[..., None]
+    uv_j = focal * xy_j
+    big = np.finfo(uv_j.dtype).max
+    lo = np.where(valid_j[..., None], uv_j, big).min(1).min(0)  # (2,)
+    hi = np.where(valid_j[..., None], uv_j, -big).max(1).max(0)
+    k = _GUIDED_SPLIT
+    cell = max(radius / k, float((hi - lo).max()) / _GUIDED_CELLS)
+    k = max(1, math.ceil(radius / cell - 1e-9))
+    lo = lo - k * cell
+    cells = np.floor((hi - lo) / cell).astype(np.int64) + k + 1
+    nx, ny = int(cells[0]), int(cells[1])
+    per_pair = nx * ny
+    ncell = B * per_pair
+    ci = np.floor((uv_i - lo) / cell)
+    inside = front & (ci >= 0).all(-1) & (ci[..., 0] < nx) & (ci[..., 1] < ny)
+    ci = np.maximum(ci, 0).astype(np.int64)
+    pair = np.arange(B)[:, None]
+    key_i = np.where(inside, pair * per_pair + ci[..., 1] * nx + ci[..., 0], ncell).reshape(-1)
+    perm = np.argsort(key_i, kind="stable")
+    ends = np.cumsum(np.bincount(key_i, minlength=ncell + 1))
+    cj = np.maximum(np.floor((uv_j - lo) / cell).astype(np.int64), k)
+    off = np.arange(-k, k + 1)
+    gap = np.maximum(np.abs(off) - 1, 0) * cell
+    half = np.ceil(np.sqrt(np.maximum(radius * radius - gap * gap, 0)) / cell - 1e-9).astype(np.int64)
+    row = np.clip(cj[..., 1, None] + off, 0, ny - 1)  # (B, Kj, 2k+1)
+    c0 = np.clip(cj[..., 0, None] - half, 0, nx - 1)
+    c1 = np.clip(cj[..., 0, None] + half, 0, nx - 1)
+    base = pair[..., None] * per_pair + row * nx
+    start = np.where(base + c0 > 0, np.take(ends, np.maximum(base + c0 - 1, 0)), 0)
+    cnt = ((np.take(ends, base + c1) - start) * valid_j[..., None]).reshape(-1)
+    total = int(cnt.sum())
+    if total == 0:
+        return none
+    # Row gathers by np.take: several times faster than fancy indexing for rows of a few numbers.
+    uv_s = np.take(uv_i.reshape(-1, 2), perm, axis=0)
+    w_s = np.take(np.ascontiguousarray(desc_i.reshape(-1, 32)).view(np.int64), perm, axis=0)
+    local_s = perm % Ki
+    runs = 2 * k + 1
+    shift = start.reshape(-1) - (np.cumsum(cnt) - cnt)
+    pos = np.arange(total) + np.repeat(shift, cnt)
+    query = np.repeat(np.arange(B * Kj), cnt.reshape(-1, runs).sum(-1))
+    d = np.take(uv_s, pos, axis=0) - np.take(uv_j.reshape(-1, 2), query, axis=0)
+    d *= d
+    near = np.flatnonzero(d[:, 0] + d[:, 1] <= radius * radius)
+    if not len(near):
+        return none
+    pos, query = np.take(pos, near), np.take(query, near)
+    w_j = np.ascontiguousarray(desc_j.reshape(-1, 32)).view(np.int64)
+    x = np.take(w_j, query, axis=0)
+    x ^= np.take(w_s, pos, axis=0)
+    bits = _NP_POPCOUNT(x.view(np.uint64))  # (P, 4) uint8
+    dist = bits[:, 0].astype(np.int64)
+    dist += bits[:, 1]
+    dist += bits[:, 2]
+    dist += bits[:, 3]
+    # Nearest candidate per query, the lowest frame-i index on ties (as brute force does).
+    code = dist * Ki + np.take(local_s, pos)
+    first = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])  # query is sorted: runs of one query
+    best = np.minimum.reduceat(code, first)
+    out = none.reshape(-1)
+    keep = best // Ki <= max_distance
+    out[query[first[keep]]] = best[keep] % Ki
+    return out.reshape(B, Kj)
 
 
 def _prediction_shift(res: SparseResult, T_pred: Tensor, focal: float) -> Tensor:
