@@ -494,7 +494,9 @@ def _isometry_filter_numpy(p_i: np.ndarray, p_j: np.ndarray, valid: np.ndarray, 
     """:func:`_isometry_filter` on host arrays, the same partners and arithmetic (so the same
     result), computed for the kept matches only: a kept match's partners are always kept ones,
     and the torch path's values for the others are masked out. All pairs at once: the kept
-    matches of every pair in one flat list, each pair's a contiguous run of it."""
+    matches of every pair in one flat list, each pair's a contiguous run of it. A match needs
+    one partner to pass, so each round tests every match's first partner, and the other
+    partners only of the matches that one failed (most inliers pass with the first)."""
     B, M = valid.shape
     R, N = cfg.isometry_rounds, cfg.isometry_partners
     u_all = _uniform_numpy(seed, _STREAM_ISO + torch.arange(R)[:, None, None], (torch.arange(M)[:, None], torch.arange(N)[None, :]))
@@ -502,6 +504,15 @@ def _isometry_filter_numpy(p_i: np.ndarray, p_j: np.ndarray, valid: np.ndarray, 
     tol = cfg.isometry_tol * planes[2]
     lo2 = np.where(tol < 1, (1 - tol) ** 2, -1.0)
     hi2 = (1 + tol) ** 2
+
+    def passes(rows: np.ndarray, partners: np.ndarray) -> np.ndarray:
+        """Eq. (22) for matches ``rows`` (K,) against their ``partners`` (K, P): (K, P) bool."""
+        d = np.take(planes, rows, axis=1)[:, :, None] - np.take(planes, partners, axis=1)  # (6, K, P)
+        d *= d
+        di2 = d[0] + d[1] + d[2]
+        dj2 = d[3] + d[4] + d[5]
+        return (di2 < hi2[rows, None] * dj2) & (di2 > lo2[rows, None] * dj2) & (dj2 > 0)
+
     kept = valid.reshape(-1).copy()
     for r in range(R):
         at = np.flatnonzero(kept)  # flat positions of the kept matches, pair by pair
@@ -512,18 +523,26 @@ def _isometry_filter_numpy(p_i: np.ndarray, p_j: np.ndarray, valid: np.ndarray, 
         first = (np.cumsum(count) - count)[pair]  # where each kept match's pair starts in ``at``
         n = count[pair]
         rank = np.arange(len(at)) - first
-        # Uniform over the other kept matches of the pair: count - 1 ranks, one's own skipped.
-        draw = np.floor(u_all[r][at % M] * np.maximum(n - 1, 0)[:, None]).astype(np.int64)
-        draw += draw >= rank[:, None]
-        partner = at[first[:, None] + np.minimum(draw, (n - 1)[:, None])]  # (K, N); clamped only where n < 2
-        mine = planes[:, at]
-        d = mine[:, :, None] - planes[:, partner]  # (6, K, N)
-        d *= d
-        di2 = d[0] + d[1] + d[2]
-        dj2 = d[3] + d[4] + d[5]
-        passed = (di2 < hi2[at, None] * dj2) & (di2 > lo2[at, None] * dj2) & (dj2 > 0)  # Eq. (22) for one partner
-        kept[at] = passed.any(-1) & (n >= 2)
+        run = (u_all[r], at, first, n, rank, M)
+        passed = passes(at, _iso_partners(run, np.arange(len(at)), slice(0, 1)))[:, 0]
+        if N > 1:
+            again = np.flatnonzero(~passed)
+            if len(again):
+                passed[again] = passes(at[again], _iso_partners(run, again, slice(1, N))).any(-1)
+        kept[at] = passed & (n >= 2)
     return kept.reshape(B, M)
+
+
+def _iso_partners(run: tuple, k: np.ndarray, cols: slice) -> np.ndarray:
+    """Partner slots ``cols`` of the kept matches ``k`` (indices into the round's ``at``), as flat
+    match positions: uniform over the other kept matches of the pair (count - 1 ranks, one's own
+    skipped), as :func:`_isometry_filter` draws them. ``run``: the round's uniforms (M, N), kept
+    positions, each one's pair start in them, pair count and rank, and M."""
+    u, at, first, n, rank, M = run
+    m1 = n[k] - 1
+    draw = np.floor(u[at[k] % M, cols] * np.maximum(m1, 0)[:, None]).astype(np.int64)
+    draw += draw >= rank[k, None]
+    return at[first[k, None] + np.minimum(draw, m1[:, None])]  # clamped only where n < 2
 
 
 def isometry_filter(
