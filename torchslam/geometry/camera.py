@@ -260,30 +260,16 @@ _NEWTON_CHUNK = 8192  # points per chunk of undistort_pixels' NumPy Newton steps
 
 
 def _newton_numpy(x: np.ndarray, y: np.ndarray, xd: np.ndarray, distortion: tuple[float, ...], steps: int):
-    """``undistort_pixels``' Newton steps in NumPy on coordinate planes, the same arithmetic
-    expression by expression (so the same bits): over the 307,200 pixels of a 640x480 camera the
+    """``undistort_pixels``' Newton steps in NumPy on coordinate planes: the torch steps'
+    model and Jacobian (``distort_planes``, ``_jacobian_planes``, plain arithmetic that runs on
+    arrays as on tensors), so the same bits; over the 307,200 pixels of a 640x480 camera the
     torch version's interleaving of planes into (K, 2) and (K, 2, 2) tensors cost most of the
     0.6 s that a run's start spent on its camera's rays."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
     tx, ty = xd[:, 0], xd[:, 1]
     for _ in range(steps):
-        r2 = x * x + y * y
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        # The residual of the forward model (distort_planes' expressions).
-        radial = num / den if (k4 or k5 or k6) else num
-        xy2 = 2 * x * y
-        res0 = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) - tx
-        res1 = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 - ty
-        # The Jacobian (_distortion_jacobian's expressions).
-        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        radial = num / den
-        drad = (dnum * den - num * dden) / (den * den)
-        j00 = radial + x * drad * 2 * x + 2 * p1 * y + 6 * p2 * x
-        j01 = x * drad * 2 * y + 2 * p1 * x + 2 * p2 * y
-        j10 = y * drad * 2 * x + 2 * p1 * x + 2 * p2 * y
-        j11 = radial + y * drad * 2 * y + 6 * p1 * y + 2 * p2 * x
+        xm, ym = distort_planes(x, y, distortion)
+        res0, res1 = xm - tx, ym - ty
+        j00, j01, j10, j11 = _jacobian_planes(x, y, distortion)
         det = j00 * j11 - j01 * j10
         det = np.where(np.abs(det) > 1e-12, det, math.inf)  # a fold: no step
         x = x - (j11 * res0 - j01 * res1) / det
@@ -321,8 +307,14 @@ def _pinhole_rays(camera: PinholeCamera, dtype: torch.dtype, device, step: int =
 
 def _distortion_jacobian(xy: Tensor, distortion: tuple[float, ...]) -> Tensor:
     """(..., 2, 2) derivative of ``distort_normalized`` with respect to ``xy``."""
+    j00, j01, j10, j11 = _jacobian_planes(*xy.unbind(-1), distortion)
+    return torch.stack([torch.stack([j00, j01], -1), torch.stack([j10, j11], -1)], -2)
+
+
+def _jacobian_planes(x, y, distortion: tuple[float, ...]):
+    """The four entries ``(d x_d / dx, d x_d / dy, d y_d / dx, d y_d / dy)`` of
+    ``distort_planes``' derivative at coordinate planes ``x``, ``y`` (tensors or arrays)."""
     k1, k2, p1, p2, k3, k4, k5, k6 = _distortion_terms(distortion)
-    x, y = xy.unbind(-1)
     r2 = x * x + y * y
     num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
@@ -334,7 +326,7 @@ def _distortion_jacobian(xy: Tensor, distortion: tuple[float, ...]) -> Tensor:
     j01 = x * drad * 2 * y + 2 * p1 * x + 2 * p2 * y
     j10 = y * drad * 2 * x + 2 * p1 * x + 2 * p2 * y
     j11 = radial + y * drad * 2 * y + 6 * p1 * y + 2 * p2 * x
-    return torch.stack([torch.stack([j00, j01], -1), torch.stack([j10, j11], -1)], -2)
+    return j00, j01, j10, j11
 
 
 def backproject_depth(depth: Tensor, intrinsics: Tensor, rays: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -54,7 +54,6 @@ from torch.nn.utils.rnn import pad_sequence
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice
 from ..devices import flat_nonzero, index_select, is_host, numpy_viewable, repeat_counts
 from ..fastgo import PairStats
-from ..features.matching import _NP_POPCOUNT
 from ..features import (
     MatchBackend,
     ORBConfig,
@@ -953,7 +952,7 @@ def _guided_index(
         return none
     R, t = T_pred[:, :3, :3], T_pred[:, None, :3, 3]
     q = (pts_i - t) @ R  # (B, Ki, 3) frame-i points in frame j: p_j = R^T (p_i - t)
-    if _NP_POPCOUNT is not None and all(numpy_viewable(x) for x in (q, valid_i, desc_i, xy_j, valid_j, desc_j)):
+    if all(numpy_viewable(x) for x in (q, valid_i, desc_i, xy_j, valid_j, desc_j)):
         return torch.from_numpy(_guided_index_numpy(
             q.numpy(), valid_i.numpy(), desc_i.numpy(), xy_j.numpy(), valid_j.numpy(), desc_j.numpy(), focal, radius, max_distance
         ))
@@ -1033,7 +1032,7 @@ def _guided_index_numpy(
 ) -> np.ndarray:
     """:func:`_guided_index` after the frame-i points are moved (``q``, (B, Ki, 3)), in NumPy on
     the host: the same cells, candidates and float64 arithmetic (so the same matches), the
-    bits counted by NumPy's popcount and each query's nearest candidate taken by one segmented
+    bits counted by ``hamming_distance_indexed`` and each query's nearest candidate taken by one segmented
     minimum (a query's candidates are consecutive) instead of a scatter. A few dozen operations
     on the candidate lists, where torch's fixed cost per operation was a large share."""
     B, Ki = valid_i.shape
@@ -1091,13 +1090,8 @@ def _guided_index_numpy(
         return none
     pos, query = np.take(pos, near), np.take(query, near)
     w_j = np.ascontiguousarray(desc_j.reshape(-1, 32)).view(np.int64)
-    x = np.take(w_j, query, axis=0)
-    x ^= np.take(w_s, pos, axis=0)
-    bits = _NP_POPCOUNT(x.view(np.uint64))  # (P, 4) uint8
-    dist = bits[:, 0].astype(np.int64)
-    dist += bits[:, 1]
-    dist += bits[:, 2]
-    dist += bits[:, 3]
+    t = torch.from_numpy  # the arrays' memory, no copies
+    dist = hamming_distance_indexed(t(w_j), t(query), t(w_s), t(pos)).numpy()
     # Nearest candidate per query, the lowest frame-i index on ties (as brute force does).
     code = dist * Ki + np.take(local_s, pos)
     first = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])  # query is sorted: runs of one query

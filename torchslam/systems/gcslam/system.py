@@ -57,7 +57,7 @@ from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
 from ...devices import numpy_viewable
 from ...geometry import (
-    PinholeCamera, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
+    PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
     undistorted_rays,
 )
 from ...registration.dense import DenseFrame, dense_images
@@ -132,6 +132,9 @@ class GCSlam:
         self.camera: PinholeCamera = sequence.camera
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
+        # Every pixel's ray for lifting keyframe pixels (the pinhole factors without distortion,
+        # exactly ``backproject_depth``'s).
+        self._pixel_rays = self.rays if self.rays is not None else undistorted_rays(self.camera, torch.float64, self.device)
         self.optimizer = Optimizer(cfg, self.monitor)
         self._worker = make_worker(self.optimizer, insert_keyframe, cfg, self.device, self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
@@ -381,20 +384,12 @@ class GCSlam:
 
     def _points_at(self, depth: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
         """float64 3-D points (P, 3) of the row-major ``pixels`` (K,) with valid depth up to
-        ``max_depth``, and those pixels (P,): ``backproject_depth``'s points at them, the same
-        arithmetic per pixel."""
+        ``max_depth``, and those pixels (P,): ``backproject_depth`` of only these pixels (their
+        depths as a 1 x K image along their rays)."""
         z = depth.reshape(-1)[pixels].to(torch.float64)
-        keep = torch.isfinite(z) & (z > 0) & (z <= self.cfg.max_depth)
-        pixels, z = pixels[keep], z[keep]
-        if self.rays is not None:
-            xy = self.rays.to(torch.float64)[pixels]
-            x, y = xy[:, 0], xy[:, 1]
-        else:
-            W = depth.shape[-1]
-            fx, fy, cx, cy = self.intrinsics[0].to(torch.float64).unbind(-1)
-            x = ((pixels % W).to(torch.float64) - cx) / fx
-            y = (torch.div(pixels, W, rounding_mode="floor").to(torch.float64) - cy) / fy
-        return torch.stack([x * z, y * z, z], -1), pixels
+        points, valid = backproject_depth(z.view(1, 1, 1, -1), self.intrinsics, rays=self._pixel_rays[pixels])
+        keep = valid[0] & (points[0, :, 2] <= self.cfg.max_depth)
+        return points[0][keep], pixels[keep]
 
     def _new_keyframe(
         self, frame: Frame, view: PreparedFrame, reference: int | None, T_ref: Tensor | None, stats: PairStats | None,
