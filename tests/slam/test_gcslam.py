@@ -111,6 +111,13 @@ def test_loop_closure_is_found_accepted_and_lowers_error():
         dist = float((T[i, :3, 3] - T[j, :3, 3]).norm())
         cos = float((T[i, :3, 2] * T[j, :3, 2]).sum())
         assert dist < 1.0 and cos > 0.7, (i, j, dist, cos)
+    # FastGO after every keyframe (the paper) instead of only before loop tests (the default):
+    # each loop test optimises the whole graph, and so does the final run, so the trajectories
+    # agree to round-off (8.9e-15 m when written).
+    every, _ = _run(seq, fastgo_every_keyframe=True)
+    assert every.output.metrics["loops"] == loops
+    assert torch.equal(every.output.keyframe_indices, with_loops.output.keyframe_indices)
+    torch.testing.assert_close(every.output.T_wc, with_loops.output.T_wc, rtol=0, atol=1e-6)
 
 
 def test_threaded_optimisation_equals_synchronous():
@@ -538,3 +545,45 @@ def test_dense_keyframe_pairs_in_a_run(frontend):
     # auto is dense pairs for either front-end: the same run as keyframe_pairs=dense.
     auto, _ = _run(seq, frontend=frontend)
     torch.testing.assert_close(auto.output.T_wc, dense.output.T_wc, rtol=0, atol=0)
+
+
+def _noisy_chain(opt, n=6, seed=0):
+    """Insert n keyframes into ``opt`` along an arc whose odometry pairs carry correspondence noise."""
+    k = torch.arange(n, dtype=torch.float64)
+    T_gt = se3_exp(torch.stack([0.2 * k, 0.03 * k, 0 * k, 0 * k, 0.05 * k, 0 * k], -1))
+    feats = FrameFeatures(torch.zeros(0, 2), torch.zeros(0, 32, dtype=torch.uint8), torch.zeros(0, 3, dtype=torch.float64),
+                          torch.zeros(0, dtype=torch.bool))
+    pairs = torch.stack([torch.arange(n - 1), torch.arange(1, n)], -1)
+    p_i, p_j = make_correspondences(T_gt, pairs, 40, 0.01, torch.Generator().manual_seed(seed))
+    for j in range(n):
+        if j == 0:
+            gc.insert_keyframe(opt, go.KeyframeEvent(0, None, None, None, feats, None))
+        else:
+            stats = PairStats.from_padded(p_i[j - 1 : j], p_j[j - 1 : j])
+            gc.insert_keyframe(opt, go.KeyframeEvent(j, j - 1, se3_inverse(T_gt[j - 1]) @ T_gt[j], stats, feats, None))
+    return T_gt
+
+
+@pytest.mark.parametrize("every", [True, False])
+def test_fastgo_runs_per_keyframe_only_where_asked_or_before_a_loop_test(monkeypatch, every):
+    opt = go.Optimizer(GCSlamConfig(threaded=False, fastgo_every_keyframe=every), Monitor())
+    tested = []
+    monkeypatch.setattr(go.Optimizer, "close_loops", lambda self, kf, cands, frame_index=0: tested.append((kf, len(self.fastgo_ms))))
+    T_gt = _noisy_chain(opt)
+    # Without loop candidates every keyframe is a leaf placed by its odometry pair: FastGO runs
+    # after each one only when asked, and the poses are then the chain of the pairs.
+    assert len(opt.fastgo_ms) == (len(T_gt) - 1 if every else 0)
+    if not every:
+        chain = [T_gt[0]]
+        for j in range(1, len(T_gt)):
+            chain.append(chain[-1] @ se3_inverse(T_gt[j - 1]) @ T_gt[j])
+        torch.testing.assert_close(torch.stack(opt.T_wk), torch.stack(chain), rtol=0, atol=1e-12)
+    # A keyframe with candidates is optimised first (its loop test compares against the optimum).
+    monkeypatch.setattr(opt.mild, "query", lambda d: (torch.tensor([0]), torch.tensor([1.0])))
+    runs = len(opt.fastgo_ms)
+    k = len(T_gt)
+    feats = opt.features[-1]
+    ev = go.KeyframeEvent(k, k - 1, torch.eye(4, dtype=torch.float64), opt.stats[-1], feats, None)
+    gc.insert_keyframe(opt, ev)
+    assert tested == [(k, runs + 1)]
+

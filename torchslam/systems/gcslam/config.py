@@ -54,6 +54,12 @@ class GCSlamConfig:
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
+        fastgo_every_keyframe: run those iterations after every keyframe, as the paper does.
+            False (torchslam's default): only for a keyframe with loop candidates, just before
+            they are tested. A keyframe without candidates adds one node linked by one pair (a
+            leaf), placed by that pair's registration, which leaves the optimum of the rest of
+            the graph where it was; the loop test's trial optimisation, and the final run,
+            optimise everything (README, "FastGO only before a loop test").
         loop_iterations: iterations of the trial optimisation that tests loop candidates.
         loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
             by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
@@ -121,6 +127,7 @@ class GCSlamConfig:
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3
+    fastgo_every_keyframe: bool = False
     loop_iterations: int = 10
     loop_threshold: float = 0.05
     loop_slack_m: float = 0.003

@@ -13,7 +13,8 @@ Two threads, as in the paper:
   keyframe in insertion order, MILD (multi-index hashing of ORB descriptors, no trained
   vocabulary) proposes the ``top_k`` most similar earlier keyframes; they are registered to the
   new keyframe with sparse registration all at once; FastGO runs ``fastgo_iterations`` Gauss-
-  Newton iterations over all keyframes; candidate loops are kept only if the registration
+  Newton iterations over all keyframes (by default only where there are candidates: a keyframe
+  without them adds a leaf, ``fastgo_every_keyframe``); candidate loops are kept only if the registration
   error of the earlier pairs does not rise by more than ``loop_threshold`` (5 %) after
   re-optimisation (§IV-C), otherwise poses and pairs are rolled back.
 
@@ -591,8 +592,9 @@ def insert_keyframes(optimizers: list[Optimizer], events: list[KeyframeEvent]) -
     """Insert one new keyframe into each of several optimisers (one per sequence) at once.
 
     Each optimiser adds its keyframe and queries MILD; then ONE FastGO call (``optimize_batch``)
-    runs ``fastgo_iterations`` over all their pose graphs together (each with its own damping
-    and convergence); finally each closes its loops. With one optimiser this is exactly the
+    runs ``fastgo_iterations`` over the pose graphs of those with loop candidates (of all with
+    ``fastgo_every_keyframe``) together (each with its own damping and convergence); finally
+    each closes its loops. With one optimiser this is exactly the
     per-keyframe step of a single sequence; with several each gets the result it gets alone,
     since the problems of a batch do not interact.
 
@@ -607,7 +609,9 @@ def insert_keyframes(optimizers: list[Optimizer], events: list[KeyframeEvent]) -
             candidates[k] = o.begin(ev)
         except Exception as exc:  # noqa: BLE001 - reported in the optimiser's place
             errors[k] = exc
-    idx = [k for k, o in enumerate(optimizers) if errors[k] is None and o.pairs]
+    # Without loop candidates a keyframe only adds a leaf to the graph (``fastgo_every_keyframe``).
+    idx = [k for k, o in enumerate(optimizers)
+           if errors[k] is None and o.pairs and (candidates[k] or o.cfg.fastgo_every_keyframe)]
     groups = [idx] if idx else []
     while groups:
         group = groups.pop(0)
