@@ -73,7 +73,7 @@ class FastGOConfig:
     """FastGO optimiser settings.
 
     Attributes:
-        iterations: maximum LM iterations per robust round (GC-SLAM runs 3 per keyframe).
+        iterations: maximum LM iterations per robust round (GC-SLAM runs 3 per keyframe with loop candidates).
         tol: stop when a step lowers (or is predicted to lower) the cost by at most
             ``tol * cost``.
         step_tol: stop when no pose moves by more than this (metres / radians). A negative

@@ -68,7 +68,8 @@ class GCSlamConfig:
             such pairs raises their RMS error by millimetres, which the relative rule alone
             would reject; a false loop moves the error by centimetres.
         final_iterations: iterations of one last FastGO run over all keyframes at the end of
-            the sequence (0: keep the per-keyframe result).
+            the sequence (0: keep the poses as the last loop test or per-keyframe run left them,
+            with the keyframes since placed by their odometry pairs).
         threaded: run optimisation in the background (False: inline, for tests).
         background: where the background optimisation runs: ``"process"``, a child process
             (on the CPU where the fork start method exists: Linux; elsewhere the thread), or
