@@ -320,6 +320,25 @@ def test_motion_prior_continues_the_last_step_and_knows_when_not_to():
     torch.testing.assert_close(off._predicted_T_kf(0.15), T1, atol=0, rtol=0)
 
 
+def test_motion_prior_spans_a_gap_of_exactly_its_limit_despite_rounding():
+    # A 5 Hz stream against the default 0.2 s limit: k / 5 - (k - 1) / 5 lands a few ulps either
+    # side of 0.2, and the prior must hold for all of them (it was dropped for the larger ones).
+    sys_ = GCSlam(GCSlamConfig(threaded=False, motion_prior_max_gap=0.2))
+    sys_.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    xi = torch.tensor([0.01, -0.02, 0.005, 0.002, 0.01, -0.003], dtype=torch.float64)
+    gaps = [k / 5 - (k - 1) / 5 for k in range(1, 40)]
+    assert any(g > 0.2 for g in gaps)  # the case that rounding makes
+    for k in range(1, 40):
+        t0, t1 = (k - 1) / 5, k / 5
+        sys_._last_T_kf, sys_._last_time, sys_._velocity = torch.eye(4, dtype=torch.float64), t0, None
+        sys_._update_velocity(se3_exp(xi), t1)
+        assert sys_._velocity is not None, (t0, t1)
+        sys_._last_T_kf = se3_exp(xi)  # the tracker records the frame
+        torch.testing.assert_close(sys_._predicted_T_kf(t1 + (t1 - t0)), se3_exp(xi) @ se3_exp(xi), atol=1e-9, rtol=0)
+    # a gap clearly beyond the limit still drops the prior
+    assert sys_._predicted_T_kf(t1 + 0.21) is sys_._last_T_kf
+
+
 def test_motion_prior_option_is_checked():
     with pytest.raises(ConfigError, match="motion_prior"):
         config_from_dict(GCSlamConfig, {"motion_prior": "imu"})

@@ -76,6 +76,9 @@ __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframe
 
 logger = logging.getLogger(__name__)
 
+# Time comparisons of frame gaps allow this much rounding (timestamps carry microseconds at best).
+_STAMP_TOLERANCE_S = 1e-6
+
 
 class _Stopwatch:
     """Per-stage wall time of one ``track`` call: each lap ends a stage and starts the next."""
@@ -310,7 +313,7 @@ class GCSlam:
     def _predicted_T_kf(self, t: float) -> Tensor:
         """(4, 4) initial pose of the frame at time ``t`` in the current keyframe (``motion_prior``)."""
         v, t0 = self._velocity, self._last_time
-        if self.cfg.motion_prior == "none" or v is None or t0 is None or not 0.0 < t - t0 <= self.cfg.motion_prior_max_gap:
+        if self.cfg.motion_prior == "none" or v is None or t0 is None or not self._within_prior_gap(t - t0):
             return self._last_T_kf
         # Through the twist, never as the 4x4 step itself: exp puts the prediction back on SE(3),
         # whereas chaining the registered (float32-rounded, slightly non-orthonormal) step would
@@ -329,8 +332,14 @@ class GCSlam:
         else:
             step = se3_log(se3_inverse(self._last_T_kf) @ T_kf)
         dt = t - t0 if t0 is not None else 0.0
-        self._velocity = step / dt if 0.0 < dt <= self.cfg.motion_prior_max_gap else None
+        self._velocity = step / dt if self._within_prior_gap(dt) else None
         self._last_time = t
+
+    def _within_prior_gap(self, dt: float) -> bool:
+        """Whether the motion prior spans ``dt`` seconds: positive and at most ``motion_prior_max_gap``,
+        to a microsecond (a stream at exactly that period, 5 Hz against 0.2 s, has gaps rounded a
+        few ulps either side of it; timestamps carry microseconds at best)."""
+        return 0.0 < dt <= self.cfg.motion_prior_max_gap + _STAMP_TOLERANCE_S
 
     def _take_inline(self) -> float:
         s, self._inline_s = self._inline_s, 0.0
