@@ -94,6 +94,46 @@ def test_dense_registration_started_far_off_is_started_again_from_orb(monkeypatc
         assert tracking["tracking_failures"] >= 1 or a.stats["max"] > 0.02, (tracking, a.stats)
 
 
+@pytest.mark.parametrize("ratio", [3.0, 0.0])
+def test_dense_registration_with_an_outlying_residual_is_started_again_from_orb(ratio):
+    # 7.7 cm and 7.3 degrees between frames, each registration started at the last pose (no
+    # motion prior): some converge to a wrong pose that keeps its correspondences, so the
+    # correspondence test does not catch them; their photometric residual is ten times the
+    # others', and the start from ORB finds the right pose.
+    seq = generate_sequence(SyntheticConfig(frames=30, fps=5.0, trajectory="orbit", seed=0, **SMALL))
+    result, a = _run(seq, frontend="dense", motion_prior="none", loops=False, dense_orb_start_residual=ratio)
+    tracking = result.output.metrics["tracking"]
+    if ratio:
+        assert tracking["orb_starts_kept"] >= 1 and tracking["orb_starts_residual"] >= 1, tracking
+        assert a.stats["rmse"] < 0.002, a.stats
+    else:
+        assert tracking["orb_starts_residual"] == 0
+        assert a.stats["rmse"] > 0.02, a.stats  # the failure the test guards against
+
+
+def test_residual_outlier_test_needs_a_history_and_compares_with_its_median():
+    system = GCSlam(GCSlamConfig(threaded=False, frontend="dense"))
+    system.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    kf = type("K", (), {"dense": object()})()
+
+    def reg(residual, ok=True):
+        result = type("R", (), {"residual_photometric": torch.tensor([residual], dtype=torch.float64)})()
+        return fe.Registration(ok, torch.eye(4, dtype=torch.float64), result, 100)
+
+    assert not system._residual_outlier(kf, reg(1.0))  # no history yet
+    system._residuals.extend([0.02, 0.05, 0.03])
+    assert system._residual_outlier(kf, reg(0.0901))  # above 3 x the median 0.03
+    assert not system._residual_outlier(kf, reg(0.0899))
+    assert not system._residual_outlier(kf, reg(0.5, ok=False))  # a failure goes the other way
+    assert not system._residual_outlier(type("K", (), {"dense": None})(), reg(0.5))  # sparse keyframe
+    system.cfg = dataclasses.replace(system.cfg, dense_orb_start_residual=0.0)
+    assert not system._residual_outlier(kf, reg(0.5))
+    system.cfg = dataclasses.replace(system.cfg, dense_orb_start_residual=3.0, dense_orb_start=False)
+    assert not system._residual_outlier(kf, reg(0.5))
+    with pytest.raises(ConfigError, match="dense_orb_start_residual"):
+        config_from_dict(GCSlamConfig, {"dense_orb_start_residual": -1})
+
+
 def test_loop_closure_is_found_accepted_and_lowers_error():
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL))
     with_loops, a_loop = _run(seq)

@@ -51,6 +51,12 @@ class GCSlamConfig:
             with more correspondences is kept (torchslam's; the sparse front-end's guided
             matches fall back to brute force alike). A start from the motion prior that is far
             off, as at a sudden reversal of fast motion, otherwise converges to a wrong pose.
+        dense_orb_start_residual: with ``dense_orb_start``, a dense registration that kept its
+            correspondences is also started again from ORB when its photometric RMS residual
+            exceeds this multiple of the median of the last 10 tracked registrations' (at least
+            3), and the one with the lower residual is kept (torchslam's; 0: off). A wrong basin
+            keeps its correspondences (the depth still overlaps) but not its photometric fit:
+            README, "Dense registrations started again from ORB at an outlying residual".
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
@@ -125,6 +131,7 @@ class GCSlamConfig:
     keyframe_sample_stride: int = 16
     keyframe_weak_ratio: float = 0.5
     dense_orb_start: bool = True
+    dense_orb_start_residual: float = 3.0
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3
@@ -150,7 +157,7 @@ class GCSlamConfig:
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
-        "keyframe_weak_ratio": Limit(ge=0, lt=1),
+        "keyframe_weak_ratio": Limit(ge=0, lt=1), "dense_orb_start_residual": NON_NEGATIVE,
         "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
         "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
         "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,

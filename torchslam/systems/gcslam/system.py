@@ -42,8 +42,10 @@ Convention:
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
+import statistics
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -78,6 +80,10 @@ logger = logging.getLogger(__name__)
 
 # Time comparisons of frame gaps allow this much rounding (timestamps carry microseconds at best).
 _STAMP_TOLERANCE_S = 1e-6
+# ``dense_orb_start_residual``: the residuals compared against (the last tracked registrations),
+# and how many are needed before the test runs.
+_RESIDUAL_WINDOW = 10
+_RESIDUAL_MIN = 3
 
 
 class _Stopwatch:
@@ -147,7 +153,7 @@ class GCSlam:
         self.frames = FrameLog()
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0,
-                       "promoted_keyframes": 0, "orb_starts": 0, "orb_starts_kept": 0}
+                       "promoted_keyframes": 0, "orb_starts": 0, "orb_starts_kept": 0, "orb_starts_residual": 0}
         self.inliers: list[int] = []
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
@@ -162,6 +168,9 @@ class GCSlam:
         # most correspondences a frame kept to that keyframe (``keyframe_weak_ratio``).
         self._previous: tuple[Frame, PreparedFrame, Registration] | None = None
         self._best_correspondences = 0
+        # Photometric RMS residuals of the last dense tracking registrations kept
+        # (``dense_orb_start_residual``).
+        self._residuals: collections.deque[float] = collections.deque(maxlen=_RESIDUAL_WINDOW)
         self._inline_s = 0.0
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked:
@@ -230,6 +239,9 @@ class GCSlam:
         clock.lap("registration")
         if self._needs_orb_start(kf, reg):
             reg = self._orb_start(kf, view, reg, clock)
+        elif self._residual_outlier(kf, reg):
+            self.counts["orb_starts_residual"] += 1
+            reg = self._orb_start(kf, view, reg, clock, by_residual=True)
         if reg.ok and self._weak(reg):
             reg = self._promote_previous(view, T_pred, clock)
             kf = self.keyframes[-1]
@@ -242,6 +254,8 @@ class GCSlam:
             return
         self._update_velocity(reg.T_kf, frame.timestamp)
         self._best_correspondences = max(self._best_correspondences, reg.correspondences)
+        if kf.dense is not None:
+            self._residuals.append(float(reg.result.residual_photometric[0]))
         self.lost_in_row = 0
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
@@ -275,9 +289,20 @@ class GCSlam:
             return False
         return not reg.ok or reg.correspondences < self.cfg.keyframe_weak_ratio * self._best_correspondences
 
-    def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch) -> Registration:
+    def _residual_outlier(self, kf: _TrackKeyframe, reg: Registration) -> bool:
+        """Whether a dense registration that kept its correspondences is to be started again from
+        ORB because its photometric residual exceeds ``dense_orb_start_residual`` times the median
+        of the last tracked ones (a wrong basin: a motion prior or last pose far from the frame)."""
+        ratio = self.cfg.dense_orb_start_residual
+        if not self.cfg.dense_orb_start or ratio <= 0 or kf.dense is None or not reg.ok or len(self._residuals) < _RESIDUAL_MIN:
+            return False
+        return float(reg.result.residual_photometric[0]) > ratio * statistics.median(self._residuals)
+
+    def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch,
+                   by_residual: bool = False) -> Registration:
         """The dense registration again, started from the frame's ORB registration to the keyframe
-        (brute-force matching, as the loops'); the result with more correspondences is kept."""
+        (brute-force matching, as the loops'); the result with more correspondences is kept, or
+        with ``by_residual`` the one with the lower photometric residual."""
         self._features(view, clock)
         res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self.generator)
         self.counts["orb_starts"] += 1
@@ -285,7 +310,11 @@ class GCSlam:
         if bool(res.success[0]):
             again = self.frontend.register(kf, view, res.T_ij[0].to(torch.float64))
         clock.lap("registration")
-        if again is not None and again.ok and (not reg.ok or again.correspondences > reg.correspondences):
+        if by_residual:
+            better = again is not None and again.ok and bool(again.result.residual_photometric[0] < reg.result.residual_photometric[0])
+        else:
+            better = again is not None and again.ok and (not reg.ok or again.correspondences > reg.correspondences)
+        if better:
             self.counts["orb_starts_kept"] += 1
             return again
         return reg
