@@ -83,7 +83,8 @@ def test_dense_registration_started_far_off_is_started_again_from_orb(monkeypatc
         return T
 
     monkeypatch.setattr(gc.GCSlam, "_predicted_T_kf", far_off)
-    result, a = _run(seq, frontend="dense", loops=False, dense_orb_start=orb_start)
+    # (The residual test's starts, ``dense_orb_start_residual``, are tested on their own below.)
+    result, a = _run(seq, frontend="dense", loops=False, dense_orb_start=orb_start, dense_orb_start_residual=0.0)
     tracking = result.output.metrics["tracking"]
     if orb_start:
         assert tracking["orb_starts"] == 1 and tracking["orb_starts_kept"] == 1, tracking
@@ -111,7 +112,7 @@ def test_dense_registration_with_an_outlying_residual_is_started_again_from_orb(
         assert a.stats["rmse"] > 0.02, a.stats  # the failure the test guards against
 
 
-def test_residual_outlier_test_needs_a_history_and_compares_with_its_median():
+def test_residual_outlier_test_starts_from_orb_until_it_has_a_history_then_compares_with_its_median():
     system = GCSlam(GCSlamConfig(threaded=False, frontend="dense"))
     system.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
     kf = type("K", (), {"dense": object()})()
@@ -120,8 +121,10 @@ def test_residual_outlier_test_needs_a_history_and_compares_with_its_median():
         result = type("R", (), {"residual_photometric": torch.tensor([residual], dtype=torch.float64)})()
         return fe.Registration(ok, torch.eye(4, dtype=torch.float64), result, 100)
 
-    assert not system._residual_outlier(kf, reg(1.0))  # no history yet
-    system._residuals.extend([0.02, 0.05, 0.03])
+    assert system._residual_outlier(kf, reg(0.001))  # no history yet: every registration is checked
+    system._residuals.extend([0.02, 0.05])
+    assert system._residual_outlier(kf, reg(0.001))  # still fewer than 3
+    system._residuals.append(0.03)
     assert system._residual_outlier(kf, reg(0.0901))  # above 3 x the median 0.03
     assert not system._residual_outlier(kf, reg(0.0899))
     assert not system._residual_outlier(kf, reg(0.5, ok=False))  # a failure goes the other way

@@ -53,8 +53,9 @@ class GCSlamConfig:
             off, as at a sudden reversal of fast motion, otherwise converges to a wrong pose.
         dense_orb_start_residual: with ``dense_orb_start``, a dense registration that kept its
             correspondences is also started again from ORB when its photometric RMS residual
-            exceeds this multiple of the median of the last 10 tracked registrations' (at least
-            3), and the one with the lower residual is kept (torchslam's; 0: off). A wrong basin
+            exceeds this multiple of the median of the last 10 tracked registrations', or while
+            fewer than 3 are known (a run's first registrations), and the one with the lower
+            residual is kept (torchslam's; 0: off). A wrong basin
             keeps its correspondences (the depth still overlaps) but not its photometric fit:
             README, "Dense registrations started again from ORB at an outlying residual".
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).

@@ -81,7 +81,7 @@ logger = logging.getLogger(__name__)
 # Time comparisons of frame gaps allow this much rounding (timestamps carry microseconds at best).
 _STAMP_TOLERANCE_S = 1e-6
 # ``dense_orb_start_residual``: the residuals compared against (the last tracked registrations),
-# and how many are needed before the test runs.
+# and how many are needed before the test runs (until then every registration is started from ORB too).
 _RESIDUAL_WINDOW = 10
 _RESIDUAL_MIN = 3
 
@@ -292,10 +292,13 @@ class GCSlam:
     def _residual_outlier(self, kf: _TrackKeyframe, reg: Registration) -> bool:
         """Whether a dense registration that kept its correspondences is to be started again from
         ORB because its photometric residual exceeds ``dense_orb_start_residual`` times the median
-        of the last tracked ones (a wrong basin: a motion prior or last pose far from the frame)."""
+        of the last tracked ones (a wrong basin: a motion prior or last pose far from the frame),
+        or because fewer than ``_RESIDUAL_MIN`` are known yet (a run's first registrations)."""
         ratio = self.cfg.dense_orb_start_residual
-        if not self.cfg.dense_orb_start or ratio <= 0 or kf.dense is None or not reg.ok or len(self._residuals) < _RESIDUAL_MIN:
+        if not self.cfg.dense_orb_start or ratio <= 0 or kf.dense is None or not reg.ok:
             return False
+        if len(self._residuals) < _RESIDUAL_MIN:
+            return True  # nothing to compare with yet (a run's first registrations): started from ORB too
         return float(reg.result.residual_photometric[0]) > ratio * statistics.median(self._residuals)
 
     def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch,
