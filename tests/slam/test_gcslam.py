@@ -630,7 +630,8 @@ def _noisy_chain(opt, n=6, seed=0):
 def test_fastgo_runs_per_keyframe_only_where_asked_or_before_a_loop_test(monkeypatch, every):
     opt = go.Optimizer(GCSlamConfig(threaded=False, fastgo_every_keyframe=every), Monitor())
     tested = []
-    monkeypatch.setattr(go.Optimizer, "close_loops", lambda self, kf, cands, frame_index=0: tested.append((kf, len(self.fastgo_ms))))
+    monkeypatch.setattr(go.Optimizer, "close_loops",
+                        lambda self, kf, cands, frame_index=0: tested.append((kf, len(self.fastgo_ms))))
     T_gt = _noisy_chain(opt)
     # Without loop candidates every keyframe is a leaf placed by its odometry pair: FastGO runs
     # after each one only when asked, and the poses are then the chain of the pairs.

@@ -4,7 +4,9 @@ The tracker hands each new keyframe over as a :class:`KeyframeEvent`. An :class:
 holds what the optimisation thread owns (keyframe poses, pair statistics, the MILD database)
 and exposes the phases of one keyframe's insertion: :meth:`Optimizer.begin` (add the keyframe
 and its odometry pair, query MILD), :meth:`Optimizer.optimized` (take the keyframe's FastGO
-result, where it ran: before a loop test, or after every keyframe with ``fastgo_every_keyframe``) and :meth:`Optimizer.close_loops` (register, test and accept loop candidates, §IV-C).
+result, where it ran: before a loop test, or after every keyframe with
+``fastgo_every_keyframe``) and :meth:`Optimizer.close_loops` (register, test and accept loop
+candidates, §IV-C).
 The FastGO call between them is made by ``system.insert_keyframes``, for one optimiser or for
 several sequences at once. A :class:`Worker` runs insertions in a background thread, inline,
 or leaves them for the lockstep driver (deferred); a :class:`ProcessWorker` runs them in a

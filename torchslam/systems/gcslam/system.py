@@ -14,8 +14,8 @@ Two threads, as in the paper:
   vocabulary) proposes the ``top_k`` most similar earlier keyframes; they are registered to the
   new keyframe with sparse registration all at once; FastGO runs ``fastgo_iterations`` Gauss-
   Newton iterations over all keyframes (by default only where there are candidates: a keyframe
-  without them adds a leaf, ``fastgo_every_keyframe``); candidate loops are kept only if the registration
-  error of the earlier pairs does not rise by more than ``loop_threshold`` (5 %) after
+  without them adds a leaf, ``fastgo_every_keyframe``); candidate loops are kept only if the
+  registration error of the earlier pairs does not rise by more than ``loop_threshold`` (5 %) after
   re-optimisation (§IV-C), otherwise poses and pairs are rolled back.
 
 The optimisation thread owns the keyframe poses and computes each new keyframe's initial pose
@@ -255,7 +255,7 @@ class GCSlam:
         self._update_velocity(reg.T_kf, frame.timestamp)
         self._best_correspondences = max(self._best_correspondences, reg.correspondences)
         if kf.dense is not None:
-            self._residuals.append(float(reg.result.residual_photometric[0]))
+            self._residuals.append(_photometric(reg))
         self.lost_in_row = 0
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
@@ -299,7 +299,7 @@ class GCSlam:
             return False
         if len(self._residuals) < _RESIDUAL_MIN:
             return True  # nothing to compare with yet (a run's first registrations): started from ORB too
-        return float(reg.result.residual_photometric[0]) > ratio * statistics.median(self._residuals)
+        return _photometric(reg) > ratio * statistics.median(self._residuals)
 
     def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch,
                    by_residual: bool = False) -> Registration:
@@ -313,11 +313,10 @@ class GCSlam:
         if bool(res.success[0]):
             again = self.frontend.register(kf, view, res.T_ij[0].to(torch.float64))
         clock.lap("registration")
-        if by_residual:
-            better = again is not None and again.ok and bool(again.result.residual_photometric[0] < reg.result.residual_photometric[0])
-        else:
-            better = again is not None and again.ok and (not reg.ok or again.correspondences > reg.correspondences)
-        if better:
+        if again is not None and again.ok and (
+            _photometric(again) < _photometric(reg) if by_residual
+            else not reg.ok or again.correspondences > reg.correspondences
+        ):
             self.counts["orb_starts_kept"] += 1
             return again
         return reg
@@ -706,6 +705,11 @@ SPEC = SystemSpec(
     # one FastGO call (``track_frames``, with the optimisation inline instead of in a thread).
     lockstep=LockstepSpec(step=track_frames, build=functools.partial(GCSlam, deferred=True)),
 )
+
+
+def _photometric(reg: Registration) -> float:
+    """A dense registration's photometric RMS residual (``DenseResult.residual_photometric``)."""
+    return float(reg.result.residual_photometric[0])
 
 
 def _displacement_numpy(points: np.ndarray, pixels: np.ndarray, T_kf_frame: np.ndarray, camera: PinholeCamera) -> float:
