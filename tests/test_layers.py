@@ -30,6 +30,7 @@ LAYERS: dict[str, int] = {
     "torchslam._moved": 0,
     "torchslam.cache": 0,
     "torchslam.devices": 0,
+    "torchslam.stamps": 0,
     "torchslam.diagnostics": 0,
     "torchslam.config": 1,
     "torchslam.checkpoint": 1,

@@ -69,6 +69,21 @@ def test_interpolate_validity():
         traj.interpolate(q.float())
 
 
+def test_interpolate_at_a_gap_of_exactly_max_gap_on_epoch_stamps():
+    # A 10 Hz stream at Unix-epoch stamps: the float64 gaps fall a few tenths of a microsecond
+    # either side of 0.1 s (doubles near 1.3e9 are 2.4e-7 apart); every gap of such a stream is
+    # max_gap = 0.1 and interpolated across; a gap 10 microseconds longer is not.
+    t = 1305031102.175304 + torch.arange(40, dtype=torch.float64) * 0.1
+    gaps = t.diff()
+    assert bool((gaps > 0.1).any()) and bool((gaps < 0.1).any())  # the round-off the test is about
+    traj = Trajectory(t, torch.eye(4, dtype=torch.float64).expand(40, 4, 4).clone())
+    mid = (t[:-1] + t[1:]) / 2
+    _, valid = traj.interpolate(mid, max_gap=0.1)
+    assert bool(valid.all())
+    _, valid = traj.interpolate(mid, max_gap=0.1 - 1e-5)
+    assert not bool(valid.any())
+
+
 @pytest.mark.parametrize(
     "row, match",
     [

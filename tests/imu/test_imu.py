@@ -186,6 +186,18 @@ def test_attitude_stream_slerp_and_validity():
     assert _angle(Ri[2:4], torch.eye(3, dtype=F64).expand(2, 3, 3)).max() == 0
 
 
+def test_attitude_stream_at_a_gap_of_exactly_max_gap_on_epoch_stamps():
+    # A 10 Hz attitude stream at Unix-epoch stamps: its float64 gaps fall a few tenths of a
+    # microsecond either side of 0.1 s; all are max_gap = 0.1 and interpolated across.
+    ts = 1305031102.175304 + torch.arange(40, dtype=F64) * 0.1
+    assert bool((ts.diff() > 0.1).any())
+    stream = AttitudeStream(ts, _rz(torch.linspace(0, 1, 40, dtype=F64)), "groundtruth")
+    _, valid = stream.at((ts[:-1] + ts[1:]) / 2, max_gap=0.1)
+    assert bool(valid.all())
+    _, valid = stream.at((ts[:-1] + ts[1:]) / 2, max_gap=0.1 - 1e-5)
+    assert not bool(valid.any())
+
+
 def test_groundtruth_attitude_is_the_trajectory():
     t = torch.arange(10, dtype=F64) / 10
     T = se3_from_Rt(so3_exp(torch.randn(10, 3, dtype=F64, generator=torch.Generator().manual_seed(0))), torch.zeros(10, 3, dtype=F64))

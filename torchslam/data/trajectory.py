@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..errors import DataFormatError, ShapeError, check_increasing, check_shape
 from ..geometry import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw, se3_from_Rt
+from ..stamps import STAMP_TOLERANCE_S
 
 __all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory"]
 
@@ -73,8 +74,9 @@ class Trajectory:
 
         Args:
             times: (M,) query timestamps, seconds.
-            max_gap: queries whose two bracketing poses are further apart than this, or that lie
-                outside the trajectory's time span, are reported invalid.
+            max_gap: queries whose two bracketing poses are further apart than this (beyond the
+                rounding of timestamps, ``STAMP_TOLERANCE_S``), or that lie outside the
+                trajectory's time span, are reported invalid.
 
         Returns:
             T_wc: (M, 4, 4) float64 interpolated poses (identity where invalid).
@@ -96,7 +98,7 @@ class Trajectory:
         span = (t1 - t0)
         alpha = torch.where(span > 0, (times - t0) / torch.where(span > 0, span, torch.ones_like(span)), torch.zeros_like(span))
         inside = (times >= t[0]) & (times <= t[-1])
-        valid = inside & (span <= max_gap)
+        valid = inside & (span <= max_gap + STAMP_TOLERANCE_S)
         q = rotmat_to_quat_xyzw(self.T_wc[:, :3, :3].to(torch.float64))
         qi = quat_xyzw_slerp(q[lo], q[hi], alpha)
         p = self.positions.to(torch.float64)

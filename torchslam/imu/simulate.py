@@ -36,6 +36,7 @@ from torch import Tensor
 
 from ..errors import NON_NEGATIVE, ConfigError, Limit, ShapeError, check_float, check_increasing, check_limits, check_shape
 from ..geometry import quat_xyzw_slerp, quat_xyzw_to_rotmat, rotmat_to_quat_xyzw, so3_exp, so3_log, vex
+from ..stamps import STAMP_TOLERANCE_S
 
 __all__ = [
     "GRAVITY_W",
@@ -210,8 +211,8 @@ def interpolate_rotations(
     t0, t1 = timestamps[lo], timestamps[hi]
     span = t1 - t0
     alpha = torch.where(span > 0, (times - t0) / torch.where(span > 0, span, torch.ones_like(span)), torch.zeros_like(span))
-    # A nanosecond of slack so a stream sampled exactly every max_gap seconds is not rejected by round-off.
-    valid = (times >= timestamps[0]) & (times <= timestamps[-1]) & (span <= max_gap + 1e-9)
+    # Slack for round-off, so a stream sampled exactly every max_gap seconds is not rejected.
+    valid = (times >= timestamps[0]) & (times <= timestamps[-1]) & (span <= max_gap + STAMP_TOLERANCE_S)
     # Only the bracketing samples are converted (the quaternion of each rotation does not depend
     # on the others, so this equals indexing ``quats``): the stream is queried every frame.
     q = rotmat_to_quat_xyzw(torch.cat([R[lo], R[hi]])) if quats is None else torch.cat([quats[lo], quats[hi]])  # (2M, 4)

@@ -65,6 +65,7 @@ from ...geometry import (
 )
 from ...registration.dense import DenseFrame, dense_images
 from ...registration.sparse import FrameFeatures, register_sparse_batch
+from ...stamps import STAMP_TOLERANCE_S
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
 from ..memory import DENSE_PAIR_BYTES_PER_WORKING_PIXEL
@@ -78,8 +79,6 @@ __all__ = ["SPEC", "GCSlam", "GCSlamConfig", "insert_keyframe", "insert_keyframe
 
 logger = logging.getLogger(__name__)
 
-# Time comparisons of frame gaps allow this much rounding (timestamps carry microseconds at best).
-_STAMP_TOLERANCE_S = 1e-6
 # ``dense_orb_start_residual``: the residuals compared against (the last tracked registrations),
 # and how many are needed before the test runs (until then every registration is started from ORB too).
 _RESIDUAL_WINDOW = 10
@@ -370,7 +369,7 @@ class GCSlam:
         """Whether the motion prior spans ``dt`` seconds: positive and at most ``motion_prior_max_gap``,
         to a microsecond (a stream at exactly that period, 5 Hz against 0.2 s, has gaps rounded a
         few ulps either side of it; timestamps carry microseconds at best)."""
-        return 0.0 < dt <= self.cfg.motion_prior_max_gap + _STAMP_TOLERANCE_S
+        return 0.0 < dt <= self.cfg.motion_prior_max_gap + STAMP_TOLERANCE_S
 
     def _take_inline(self) -> float:
         s, self._inline_s = self._inline_s, 0.0
