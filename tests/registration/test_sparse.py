@@ -129,6 +129,8 @@ def _planted_features(g, n_match, extra_i, extra_j, T_ij, outlier_frac=0.0, inva
         ("refine_iterations", 1.5),
         ("seed", "zero"),
         ("match_backend", "cuda"),
+        ("guided_min_fraction", 1.5),
+        ("guided_min_fraction", -0.1),
     ],
 )
 def test_config_rejects_bad_values_naming_the_key(key, value):
@@ -541,6 +543,41 @@ def test_guided_registration_falls_back_to_brute_force_on_a_bad_prediction():
     assert both.guided.tolist() == [True, False]
     torch.testing.assert_close(both.T_ij[0], good.T_ij[0], rtol=0, atol=1e-12)
     torch.testing.assert_close(both.T_ij[1], brute.T_ij[0], rtol=0, atol=1e-12)
+
+
+def _joined(a: FrameFeatures, b: FrameFeatures) -> FrameFeatures:
+    return FrameFeatures(*(torch.cat([getattr(a, n), getattr(b, n)]) for n in ("keypoints", "descriptors", "points", "valid")))
+
+
+def test_a_guided_registration_with_few_of_the_keypoints_is_redone_by_brute_force():
+    """A prediction far off can lock the window onto a small self-consistent set of matches:
+    here 60 planted ones at the prediction itself, against 500 at the true pose outside the
+    window. They pass ``guided_min_inliers`` (50) but hold 11 % of the keypoints, below
+    ``guided_min_fraction`` (0.2): brute force finds the true pose."""
+    g = torch.Generator().manual_seed(27)
+    T = _random_pose(g)
+    W = T @ se3_exp(torch.tensor([0.3, -0.2, 0.1, 0.2, 0.1, -0.1], dtype=F64))  # the prediction
+    ai, aj, _, _ = _planted_features(g, 500, 0, 0, T)
+    bi, bj, _, _ = _planted_features(g, 60, 0, 0, W)
+    fi, fj = _joined(ai, bi), _joined(aj, bj)
+    kept = register_sparse_batch([fi], [fj], SparseConfig(guided_radius=3.0, guided_min_fraction=0.0), T_pred=W[None], focal=500.0)
+    assert kept.guided.tolist() == [True] and int(kept.num_inliers[0]) == 60
+    assert _pose_error(kept.T_ij[0], W)[0] < 1e-9  # the wrong pose, kept without the fraction test
+    res = register_sparse_batch([fi], [fj], SparseConfig(guided_radius=3.0), T_pred=W[None], focal=500.0)
+    assert res.guided.tolist() == [False] and int(res.num_inliers[0]) == 500
+    t_err, r_err = _pose_error(res.T_ij[0], T)
+    assert t_err < 1e-9 and r_err < 1e-9
+    # With the prediction at the true pose the guided result holds 89 % of the keypoints and is kept.
+    good = register_sparse_batch([fi], [fj], SparseConfig(guided_radius=3.0), T_pred=T[None], focal=500.0)
+    assert good.guided.tolist() == [True] and int(good.num_inliers[0]) == 500
+    # Weak by a fraction of 0.95, it is checked by brute force, which finds no more inliers
+    # (the same 500): the guided result is kept.
+    strict = register_sparse_batch([fi], [fj], SparseConfig(guided_radius=3.0, guided_min_fraction=0.95), T_pred=T[None], focal=500.0)
+    assert strict.guided.tolist() == [True] and torch.equal(strict.T_ij, good.T_ij)
+    # In a batch: the weak pair takes brute force's result, the other keeps its guided one.
+    both = register_sparse_batch([fi, fi], [fj, fj], SparseConfig(guided_radius=3.0), T_pred=torch.stack([T, W]), focal=500.0)
+    assert both.guided.tolist() == [True, False] and both.num_inliers.tolist() == [500, 500]
+    torch.testing.assert_close(both.T_ij, torch.cat([good.T_ij, res.T_ij]), rtol=0, atol=1e-12)
 
 
 def test_guided_registration_matches_again_around_its_pose_when_the_prediction_was_off():

@@ -57,6 +57,21 @@ def test_sparse_tracks_synthetic_translation_and_rotation(trajectory):
     assert a.stats["rmse"] < 0.01, a.stats
 
 
+@pytest.mark.parametrize("fraction", [0.2, 0.0])
+def test_sparse_guided_registration_with_few_of_the_keypoints_is_checked_by_brute_force(fraction):
+    # 7.7 cm and 7.3 degrees between frames, each registration guided from the last pose (no
+    # motion prior): one frame's window locks onto 72 self-consistent matches of ~1,900 keypoints,
+    # which pass guided_min_inliers (50) and put it 40 cm off; guided_min_fraction sends it to
+    # brute force, which keeps ~820 inliers at the right pose.
+    seq = generate_sequence(SyntheticConfig(frames=14, fps=5.0, trajectory="orbit", seed=0))
+    result, a = _run(seq, loops=False, motion_prior="none", sparse={"guided_min_fraction": fraction})
+    if fraction:
+        assert a.stats["max"] < 0.002, a.stats
+    else:
+        assert a.stats["max"] > 0.1, a.stats  # the failure the test guards against
+        assert result.output.metrics["registrations"]["guided"] >= 1
+
+
 def test_dense_tracks_synthetic_sequence():
     seq = generate_sequence(SyntheticConfig(frames=40, trajectory="translate", seed=2, **SMALL))
     result, a = _run(seq, frontend="dense", loops=False)

@@ -148,9 +148,10 @@ class SparseFrontend(TrackingFrontend):
 
     With ``sparse.guided_radius > 0`` the matches are guided by the tracker's predicted pose
     (``T_guess``: the constant-velocity prediction of ``GCSlamConfig.motion_prior``, or the last
-    frame's pose where there is none). A weak guided registration falls back to brute-force
-    matching inside :func:`~torchslam.registration.sparse.register_sparse_batch`. ``counts``
-    holds how many registrations kept their guided matches and how many fell back.
+    frame's pose where there is none). A weak guided registration (few inliers, or few of the
+    keypoints: ``sparse.guided_min_fraction``) is checked by brute-force matching inside
+    :func:`~torchslam.registration.sparse.register_sparse_batch`. ``counts`` holds how many
+    registrations kept their guided matches and how many took the brute-force result.
     """
 
     kind = Frontend.SPARSE

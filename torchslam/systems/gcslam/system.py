@@ -571,8 +571,8 @@ class GCSlam:
             "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
                             for (i, j), kind in zip(opt.pairs, kinds) if kind == "loop"],
             "tracking": dict(self.counts),
-            # Sparse front-end: registrations that kept their guided matches and those that fell
-            # back to brute-force matching.
+            # Sparse front-end: registrations that kept their guided matches and those that took
+            # the brute-force result.
             "registrations": dict(getattr(self.frontend, "counts", {})),
             "correspondences_mean": float(torch.tensor(self.inliers, dtype=torch.float64).mean()) if self.inliers else None,
             "fastgo_ms_mean": sum(fastgo) / len(fastgo) if fastgo else None,
