@@ -127,6 +127,58 @@ def test_dense_registration_with_an_outlying_residual_is_started_again_from_orb(
         assert a.stats["rmse"] > 0.02, a.stats  # the failure the test guards against
 
 
+@pytest.mark.parametrize("check", [True, False])
+def test_dense_keyframe_link_that_disagrees_with_orb_is_started_again_from_orb(monkeypatch, check):
+    # One frame's dense registration is put 30 cm off with twice its photometric residual (a
+    # wrong basin that keeps its correspondences, below the residual test's 3x median): the
+    # displacement makes it a keyframe, whose link to the graph would carry the error. The ORB
+    # registration to the keyframe disagrees with it, the dense registration started from the
+    # ORB pose has the lower residual and is kept.
+    seq = generate_sequence(SyntheticConfig(frames=30, trajectory="translate", seed=2, **SMALL))
+    original, original_track = fe.DenseFrontend.register, gc.GCSlam.track
+    state = {"frame": -1, "calls": 0}
+
+    def track(self, frame):
+        state["frame"], state["calls"] = frame.index, 0
+        return original_track(self, frame)
+
+    def register(self, keyframe, frame, T_guess):
+        reg = original(self, keyframe, frame, T_guess)
+        state["calls"] += 1
+        if state["frame"] != 16 or state["calls"] > 1:
+            return reg
+        off = reg.T_kf @ se3_exp(torch.tensor([0.3, 0.0, 0.0, 0.0, 0.3, 0.0], dtype=torch.float64))
+        result = dataclasses.replace(reg.result, residual_photometric=reg.result.residual_photometric * 2)
+        return dataclasses.replace(reg, T_kf=off, result=result)
+
+    monkeypatch.setattr(gc.GCSlam, "track", track)
+    monkeypatch.setattr(fe.DenseFrontend, "register", register)
+    result, a = _run(seq, frontend="dense", loops=False, dense_orb_start_residual=0.0, dense_orb_keyframe_check=check)
+    tracking = result.output.metrics["tracking"]
+    assert tracking["orb_checks"] == (len(result.output.keyframe_indices) - 1 if check else 0), tracking
+    if check:
+        assert tracking["orb_starts_check"] == 1 and tracking["orb_starts_kept"] == 1, tracking
+        assert a.stats["max"] < 0.01, a.stats
+    else:
+        assert tracking["orb_starts"] == 0
+        assert a.stats["max"] > 0.1, a.stats  # the failure the test guards against
+
+
+def test_inlier_shift_measures_how_far_a_pose_moves_the_orb_inliers_from_the_orb_pose():
+    g = torch.Generator().manual_seed(5)
+    p_j = torch.rand(1, 50, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    T = se3_exp(torch.tensor([0.1, -0.05, 0.02, 0.1, 0.0, -0.2], dtype=torch.float64))
+    p_i = p_j @ T[:3, :3].T + T[:3, 3]
+    inliers = torch.ones(1, 50, dtype=torch.bool)
+    inliers[0, :10] = False
+    p_i[0, :10] += 5.0  # outliers, left out of the mean
+    res = type("S", (), {"points_i": p_i, "points_j": p_j, "inliers": inliers, "T_ij": T[None]})()
+    assert gc._inlier_shift(res, T) < 1e-12
+    shifted = T.clone()
+    shifted[:3, 3] += torch.tensor([0.03, 0.0, 0.04], dtype=torch.float64)
+    assert abs(gc._inlier_shift(res, shifted) - 0.05) < 1e-12
+
+
 def test_residual_outlier_test_starts_from_orb_until_it_has_a_history_then_compares_with_its_median():
     system = GCSlam(GCSlamConfig(threaded=False, frontend="dense"))
     system.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))

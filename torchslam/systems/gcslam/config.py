@@ -58,6 +58,13 @@ class GCSlamConfig:
             residual is kept (torchslam's; 0: off). A wrong basin
             keeps its correspondences (the depth still overlaps) but not its photometric fit:
             README, "Dense registrations started again from ORB at an outlying residual".
+        dense_orb_keyframe_check: with ``dense_orb_start``, a dense registration that makes its
+            frame a keyframe (the graph's odometry link) is checked against the frame's ORB
+            registration to the keyframe (brute-force matching, independent of the start): where
+            the two poses place the ORB inliers more than ``sparse.inlier_threshold`` apart on
+            average, the dense registration is started again from the ORB pose and the one with
+            the lower photometric residual is kept (torchslam's). README, "Keyframe links
+            checked against ORB".
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
         fastgo_iterations: FastGO Gauss-Newton iterations per keyframe (released code: 3).
@@ -133,6 +140,7 @@ class GCSlamConfig:
     keyframe_weak_ratio: float = 0.5
     dense_orb_start: bool = True
     dense_orb_start_residual: float = 3.0
+    dense_orb_keyframe_check: bool = True
     mild: MILDConfig = field(default_factory=MILDConfig)
     loops: bool = True
     fastgo_iterations: int = 3

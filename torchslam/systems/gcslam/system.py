@@ -64,7 +64,7 @@ from ...geometry import (
     undistorted_rays,
 )
 from ...registration.dense import DenseFrame, dense_images
-from ...registration.sparse import FrameFeatures, register_sparse_batch
+from ...registration.sparse import FrameFeatures, SparseResult, register_sparse_batch
 from ...stamps import STAMP_TOLERANCE_S
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
 from ..framelog import FrameLog, voxel_downsample
@@ -152,10 +152,12 @@ class GCSlam:
         self.frames = FrameLog()
         self.lost_in_row = 0
         self.counts = {"lost_frames": 0, "relocalized": 0, "unlinked_keyframes": 0, "no_depth": 0, "tracking_failures": 0,
-                       "promoted_keyframes": 0, "orb_starts": 0, "orb_starts_kept": 0, "orb_starts_residual": 0}
+                       "promoted_keyframes": 0, "orb_starts": 0, "orb_starts_kept": 0, "orb_starts_residual": 0,
+                       "orb_checks": 0, "orb_starts_check": 0}
         self.inliers: list[int] = []
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
+        self._check_generator = torch.Generator().manual_seed(cfg.sparse.seed)
         self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
         # The last tracked step's motion (``motion_prior``): (6,) twist per second in the frame's
@@ -251,6 +253,10 @@ class GCSlam:
             self._relocalize(frame, view)
             clock.lap("relocalization", exclude_s=self._take_inline())
             return
+        moved = self._displacement(kf, reg.T_kf)
+        if moved > cfg.keyframe_displacement * self.camera.fx and self._keyframe_check(kf):
+            reg = self._check_against_orb(kf, view, reg, clock)
+            moved = self._displacement(kf, reg.T_kf)
         self._update_velocity(reg.T_kf, frame.timestamp)
         self._best_correspondences = max(self._best_correspondences, reg.correspondences)
         if kf.dense is not None:
@@ -258,7 +264,6 @@ class GCSlam:
         self.lost_in_row = 0
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
-        moved = self._displacement(kf, reg.T_kf)
         clock.lap("keyframe_decision")
         if moved > cfg.keyframe_displacement * self.camera.fx:
             self._features(view, clock)
@@ -300,13 +305,34 @@ class GCSlam:
             return True  # nothing to compare with yet (a run's first registrations): started from ORB too
         return _photometric(reg) > ratio * statistics.median(self._residuals)
 
-    def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch,
-                   by_residual: bool = False) -> Registration:
-        """The dense registration again, started from the frame's ORB registration to the keyframe
-        (brute-force matching, as the loops'); the result with more correspondences is kept, or
-        with ``by_residual`` the one with the lower photometric residual."""
+    def _keyframe_check(self, kf: _TrackKeyframe) -> bool:
+        """Whether a dense registration that makes its frame a keyframe is checked against ORB
+        (``dense_orb_keyframe_check``)."""
+        return self.cfg.dense_orb_start and self.cfg.dense_orb_keyframe_check and kf.dense is not None
+
+    def _check_against_orb(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch) -> Registration:
+        """``reg``, or where it disagrees with the frame's ORB registration to the keyframe (the
+        dense pose moves the ORB inliers by more than ``sparse.inlier_threshold`` on average),
+        the dense registration started again from the ORB pose if its photometric residual is lower."""
         self._features(view, clock)
-        res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self.generator)
+        # Its own random stream: a check that agrees changes nothing downstream.
+        res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self._check_generator)
+        self.counts["orb_checks"] += 1
+        clock.lap("registration")
+        if not bool(res.success[0]) or _inlier_shift(res, reg.T_kf) <= self.cfg.sparse.inlier_threshold:
+            return reg
+        self.counts["orb_starts_check"] += 1
+        return self._orb_start(kf, view, reg, clock, by_residual=True, res=res)
+
+    def _orb_start(self, kf: _TrackKeyframe, view: PreparedFrame, reg: Registration, clock: _Stopwatch,
+                   by_residual: bool = False, res: SparseResult | None = None) -> Registration:
+        """The dense registration again, started from the frame's ORB registration to the keyframe
+        (brute-force matching, as the loops'; ``res`` where it is known already); the result with
+        more correspondences is kept, or with ``by_residual`` the one with the lower photometric
+        residual."""
+        self._features(view, clock)
+        if res is None:
+            res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self.generator)
         self.counts["orb_starts"] += 1
         again = None
         if bool(res.success[0]):
@@ -704,6 +730,17 @@ SPEC = SystemSpec(
     # one FastGO call (``track_frames``, with the optimisation inline instead of in a thread).
     lockstep=LockstepSpec(step=track_frames, build=functools.partial(GCSlam, deferred=True)),
 )
+
+
+def _inlier_shift(res: SparseResult, T_kf: Tensor) -> float:
+    """Mean distance, metres, between the ORB inliers' frame points moved into the keyframe by
+    ``T_kf`` (p_kf = T_kf p_frame) and by the ORB pose ``res.T_ij``: how far the two poses
+    disagree where the ORB registration measured (0 for the same pose)."""
+    inl = res.inliers[0]
+    p = res.points_j[0][inl]
+    T = T_kf.to(p.device, torch.float64)
+    T_orb = res.T_ij[0].to(p.device, torch.float64)
+    return float(((p @ T[:3, :3].T + T[:3, 3]) - (p @ T_orb[:3, :3].T + T_orb[:3, 3])).norm(dim=-1).mean())
 
 
 def _photometric(reg: Registration) -> float:
