@@ -133,7 +133,9 @@ def test_dense_keyframe_link_that_disagrees_with_orb_is_started_again_from_orb(m
     # wrong basin that keeps its correspondences, below the residual test's 3x median): the
     # displacement makes it a keyframe, whose link to the graph would carry the error. The ORB
     # registration to the keyframe disagrees with it, the dense registration started from the
-    # ORB pose has the lower residual and is kept.
+    # ORB pose has the lower residual and is kept. (Without the check, the next frame's
+    # prediction from the wrong pose is caught by the weak-registration test, and the optimiser's
+    # keyframe pairs repair this synthetic link, so the run's error is not the signal here.)
     seq = generate_sequence(SyntheticConfig(frames=30, trajectory="translate", seed=2, **SMALL))
     original, original_track = fe.DenseFrontend.register, gc.GCSlam.track
     state = {"frame": -1, "calls": 0}
@@ -160,8 +162,7 @@ def test_dense_keyframe_link_that_disagrees_with_orb_is_started_again_from_orb(m
         assert tracking["orb_starts_check"] == 1 and tracking["orb_starts_kept"] == 1, tracking
         assert a.stats["max"] < 0.01, a.stats
     else:
-        assert tracking["orb_starts"] == 0
-        assert a.stats["max"] > 0.1, a.stats  # the failure the test guards against
+        assert tracking["orb_starts_check"] == 0
 
 
 def test_inlier_shift_measures_how_far_a_pose_moves_the_orb_inliers_from_the_orb_pose():
@@ -177,6 +178,26 @@ def test_inlier_shift_measures_how_far_a_pose_moves_the_orb_inliers_from_the_orb
     shifted = T.clone()
     shifted[:3, 3] += torch.tensor([0.03, 0.0, 0.04], dtype=torch.float64)
     assert abs(gc._inlier_shift(res, shifted) - 0.05) < 1e-12
+
+
+def test_dense_registration_to_a_fresh_keyframe_is_compared_with_the_keyframe_link():
+    # Before any frame is tracked to a keyframe, a weak dense registration is judged against the
+    # correspondences of the registration that linked the keyframe; afterwards against the best
+    # tracked count, as before.
+    system = GCSlam(GCSlamConfig(threaded=False, frontend="dense"))
+    system.start(generate_sequence(SyntheticConfig(frames=2, height=60, width=80)))
+    kf = type("K", (), {"dense": object()})()
+
+    def reg(n, ok=True):
+        return fe.Registration(ok, torch.eye(4, dtype=torch.float64), None, n)
+
+    assert not system._needs_orb_start(kf, reg(10))  # nothing to compare with (the first keyframe)
+    system._link_correspondences = 40000
+    assert system._needs_orb_start(kf, reg(19999)) and not system._needs_orb_start(kf, reg(20001))
+    assert system._needs_orb_start(kf, reg(30000, ok=False))
+    system._best_correspondences = 30000
+    assert not system._needs_orb_start(kf, reg(19999)) and system._needs_orb_start(kf, reg(14999))
+    assert not system._needs_orb_start(type("K", (), {"dense": None})(), reg(10))  # sparse keyframe
 
 
 def test_residual_outlier_test_starts_from_orb_until_it_has_a_history_then_compares_with_its_median():

@@ -46,8 +46,9 @@ class GCSlamConfig:
             it kept more) a keyframe, and is registered to that one instead (torchslam's, for
             blurred stretches; 0: off). Such a promoted keyframe joins MILD but proposes no loops.
         dense_orb_start: with the dense front-end, a registration that fails or keeps fewer than
-            ``keyframe_weak_ratio`` of the best correspondence count to the current keyframe is
-            started again from an ORB registration of the frame to the keyframe, and the one
+            ``keyframe_weak_ratio`` of the best correspondence count to the current keyframe (of
+            the count of the registration that linked the keyframe, before any frame is tracked
+            to it) is started again from an ORB registration of the frame to the keyframe, and the one
             with more correspondences is kept (torchslam's; the sparse front-end's guided
             matches fall back to brute force alike). A start from the motion prior that is far
             off, as at a sudden reversal of fast motion, otherwise converges to a wrong pose.

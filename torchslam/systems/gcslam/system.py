@@ -169,6 +169,10 @@ class GCSlam:
         # most correspondences a frame kept to that keyframe (``keyframe_weak_ratio``).
         self._previous: tuple[Frame, PreparedFrame, Registration] | None = None
         self._best_correspondences = 0
+        # The correspondences of the registration that linked the current keyframe to the one
+        # before (0 where there is none: the first, unlinked or relocalised keyframes): what a
+        # dense registration to a keyframe without tracked frames yet is compared with.
+        self._link_correspondences = 0
         # Photometric RMS residuals of the last dense tracking registrations kept
         # (``dense_orb_start_residual``).
         self._residuals: collections.deque[float] = collections.deque(maxlen=_RESIDUAL_WINDOW)
@@ -268,6 +272,7 @@ class GCSlam:
         if moved > cfg.keyframe_displacement * self.camera.fx:
             self._features(view, clock)
             self._new_keyframe(frame, view, reference=kf.kf, T_ref=reg.T_kf, stats=reg.stats)
+            self._link_correspondences = reg.correspondences
             clock.lap("keyframe_insertion", exclude_s=self._take_inline())
             return
         self._record(frame, kf.kf, reg.T_kf)
@@ -288,10 +293,12 @@ class GCSlam:
 
     def _needs_orb_start(self, kf: _TrackKeyframe, reg: Registration) -> bool:
         """Whether a dense registration is to be started again from ORB (``dense_orb_start``):
-        it failed or kept fewer than ``keyframe_weak_ratio`` of the best count to this keyframe."""
-        if not self.cfg.dense_orb_start or kf.dense is None or self._best_correspondences <= 0:
+        it failed or kept fewer than ``keyframe_weak_ratio`` of the best count to this keyframe,
+        or, before any frame is tracked to it, of the count of the registration that linked it."""
+        best = self._best_correspondences or self._link_correspondences
+        if not self.cfg.dense_orb_start or kf.dense is None or best <= 0:
             return False
-        return not reg.ok or reg.correspondences < self.cfg.keyframe_weak_ratio * self._best_correspondences
+        return not reg.ok or reg.correspondences < self.cfg.keyframe_weak_ratio * best
 
     def _residual_outlier(self, kf: _TrackKeyframe, reg: Registration) -> bool:
         """Whether a dense registration that kept its correspondences is to be started again from
@@ -359,6 +366,7 @@ class GCSlam:
         old = self.keyframes[-1]
         self._features(prev_view, clock)
         self._new_keyframe(prev_frame, prev_view, reference=old.kf, T_ref=prev_reg.T_kf, stats=prev_reg.stats, promote=True)
+        self._link_correspondences = prev_reg.correspondences
         self.counts["promoted_keyframes"] += 1
         clock.lap("keyframe_insertion", exclude_s=self._take_inline())
         T_prev_inv = se3_inverse(prev_reg.T_kf.to(torch.float64))
@@ -512,6 +520,7 @@ class GCSlam:
             self._record(frame, kid, torch.eye(4, dtype=torch.float64, device=self.device), prior="unlinked" if anchor is not None else None)
         self._previous = None
         self._best_correspondences = 0
+        self._link_correspondences = 0
         self.monitor.scalar("progress/keyframes", kid + 1, frame.index)
 
     # ------------------------------------------------------------------ monitoring
