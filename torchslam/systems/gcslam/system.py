@@ -257,8 +257,9 @@ class GCSlam:
             self._relocalize(frame, view)
             clock.lap("relocalization", exclude_s=self._take_inline())
             return
+        limit = cfg.keyframe_displacement * self.camera.fx
         moved = self._displacement(kf, reg.T_kf)
-        if moved > cfg.keyframe_displacement * self.camera.fx and self._keyframe_check(kf):
+        if moved > limit and self._keyframe_check(kf):
             reg = self._check_against_orb(kf, view, reg, clock)
             moved = self._displacement(kf, reg.T_kf)
         self._update_velocity(reg.T_kf, frame.timestamp)
@@ -269,7 +270,7 @@ class GCSlam:
         self.inliers.append(reg.correspondences)
         self.monitor.scalar("tracking/correspondences", reg.correspondences, frame.index)
         clock.lap("keyframe_decision")
-        if moved > cfg.keyframe_displacement * self.camera.fx:
+        if moved > limit:
             self._features(view, clock)
             self._new_keyframe(frame, view, reference=kf.kf, T_ref=reg.T_kf, stats=reg.stats)
             self._link_correspondences = reg.correspondences
@@ -337,8 +338,8 @@ class GCSlam:
         (brute-force matching, as the loops'; ``res`` where it is known already); the result with
         more correspondences is kept, or with ``by_residual`` the one with the lower photometric
         residual."""
-        self._features(view, clock)
         if res is None:
+            self._features(view, clock)
             res = register_sparse_batch([kf.features], [view.features], self.cfg.sparse, self.generator)
         self.counts["orb_starts"] += 1
         again = None
