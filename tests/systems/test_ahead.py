@@ -111,7 +111,7 @@ def test_gcslam_gives_the_same_trajectory_with_frames_prepared_ahead(frontend):
     seq = generate_sequence(SyntheticConfig(frames=24, trajectory="orbit", seed=5, **SMALL))
 
     def make(ahead):
-        return GCSlam(config_from_dict(GCSlamConfig, {"frontend": frontend, "threaded": False, "prepare_ahead": ahead}))
+        return GCSlam(config_from_dict(GCSlamConfig, {"frontend": frontend, "threaded": False, "prepare_ahead": ahead, "prepare_ahead_in": "thread"}))
 
     off, calls_off = _run(make, seq, False)
     on, calls_on = _run(make, seq, True)

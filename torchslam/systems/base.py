@@ -23,6 +23,8 @@ from torch import Tensor
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError
+from . import ahead_process
+from .ahead_process import ProcessSource
 from .memory import check_run_memory
 
 __all__ = [
@@ -284,7 +286,7 @@ def drive(
             try:
                 frames: Iterable[Frame] = iter(seq)
                 if ahead and getattr(live[i], "prepares_ahead", False):
-                    frames = aheads[i] = AheadFrames(live[i], frames)
+                    frames = aheads[i] = AheadFrames(live[i], frames, sequence=seq)
                 if progress is not None:
                     frames = progress(frames)
                 frames_in[i] = iter(frames)
@@ -363,13 +365,23 @@ class AheadFrames:
     iterator would raise it. An error inside ``prepare_ahead`` is not raised here: the frame is
     handed out unprepared and ``track`` prepares it inline, raising it there, in the frame's
     place. :meth:`close` stops the thread (``drive`` calls it once the sequences are done).
+
+    A system whose ``prepares_ahead_in_process`` is true (after its ``start``) has its frames
+    read and prepared in a forked child process instead, where fork is available
+    (:mod:`~torchslam.systems.ahead_process`): its ``ahead_payload(frame)`` returns what
+    ``prepare_ahead`` computes and its stage times, ``accept_ahead(frame, payload, stage_ms)``
+    stores them for ``track``. The reading and the preparation then share no interpreter lock
+    with tracking. ``sequence``: where the child's reading skipped frames, they are added to
+    ``sequence.skipped`` here as the reading in this process adds them.
     """
 
-    def __init__(self, system: SlamSystem, frames: Iterable[Frame], depth: int = 2) -> None:
+    def __init__(self, system: SlamSystem, frames: Iterable[Frame], depth: int = 2, sequence: Sequence | None = None) -> None:
         if not (isinstance(depth, int) and depth >= 1):
             raise ConfigError(f"depth: expected an integer >= 1, got {depth!r}")
         self.system = system
+        self.sequence = sequence
         self._source = iter(frames)
+        self._process: ProcessSource | None = None
         self._slots = threading.Semaphore(depth)
         self._results: queue.SimpleQueue = queue.SimpleQueue()
         self._stop = threading.Event()
@@ -383,11 +395,17 @@ class AheadFrames:
     def __next__(self) -> Frame:
         if self._done:
             raise StopIteration
-        if self._thread is None:  # started on the first frame, after the system's start
-            self._thread = threading.Thread(target=self._work, name="torchslam-ahead", daemon=True)
-            self._thread.start()
-        kind, value, seconds = self._results.get()
-        self._slots.release()
+        if self._thread is None and self._process is None:  # started on the first frame, after the system's start
+            if getattr(self.system, "prepares_ahead_in_process", False) and ahead_process.available():
+                self._process = ProcessSource(self.system, self._source, self.sequence)
+            else:
+                self._thread = threading.Thread(target=self._work, name="torchslam-ahead", daemon=True)
+                self._thread.start()
+        if self._process is not None:
+            kind, value, seconds = self._process.next()
+        else:
+            kind, value, seconds = self._results.get()
+            self._slots.release()
         if kind == "frame":
             self._seconds += seconds
             return value
@@ -409,6 +427,8 @@ class AheadFrames:
         self._join()
 
     def _join(self) -> None:
+        if self._process is not None:
+            self._process.close()
         if self._thread is not None:
             self._thread.join()
             self._thread = None

@@ -95,6 +95,10 @@ class GCSlamConfig:
             (dense) are computed on a thread of their own while the frames before it are tracked
             (``systems.base.AheadFrames``): the same results, overlapped with tracking where a
             core is free. False: prepared inline by ``track``.
+        prepare_ahead_in: where that preparation and the reading of the frames run:
+            ``"process"``, a child process forked after ``start`` (on the CPU where the fork start
+            method exists; elsewhere the thread), which shares no interpreter lock with tracking
+            (``systems.ahead_process``), or ``"thread"``. The same results either way.
         relocalize_keyframes: recent keyframes tried when a frame cannot be registered.
         max_lost: lost frames in a row before a new, unlinked keyframe is started.
         min_valid_depth: frames with fewer valid depth pixels are not tracked.
@@ -153,6 +157,7 @@ class GCSlamConfig:
     threaded: bool = True
     background: str = "process"
     prepare_ahead: bool = True
+    prepare_ahead_in: str = "process"
     relocalize_keyframes: int = 5
     max_lost: int = 10
     min_valid_depth: int = 1000
@@ -179,6 +184,8 @@ class GCSlamConfig:
         object.__setattr__(self, "frontend", parse_choice(Frontend, self.frontend, "frontend"))
         if self.background not in ("process", "thread"):
             raise ConfigError(f"background: expected 'process' or 'thread', got {self.background!r}")
+        if self.prepare_ahead_in not in ("process", "thread"):
+            raise ConfigError(f"prepare_ahead_in: expected 'process' or 'thread', got {self.prepare_ahead_in!r}")
         if self.motion_prior not in ("constant_velocity", "none"):
             raise ConfigError(f"motion_prior: expected 'constant_velocity' or 'none', got {self.motion_prior!r}")
         if self.keyframe_pairs not in ("auto", "sparse", "dense"):

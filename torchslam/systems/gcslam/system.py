@@ -194,11 +194,25 @@ class GCSlam:
         Reads only what ``start`` set up, so it may run on another thread while ``track`` runs;
         ``track`` of the frame picks the result up (and its stage times).
         """
+        self.accept_ahead(frame, *self.ahead_payload(frame))
+
+    @property
+    def prepares_ahead_in_process(self) -> bool:
+        """Whether ``run_sequence`` reads and prepares the frames in a child process
+        (``cfg.prepare_ahead_in``; the CPU only, where a thread runs otherwise)."""
+        return self.cfg.prepare_ahead and self.cfg.prepare_ahead_in == "process" and self.device.type == "cpu"
+
+    def ahead_payload(self, frame: Frame) -> tuple[tuple, dict[str, float]]:
+        """What :meth:`prepare_ahead` computes for ``frame``, and its stage times."""
         stage_ms: dict[str, float] = {}
         clock = _Stopwatch(stage_ms)
         rgb, depth, enough = self._images(frame)
         view = self.frontend.prepare(rgb, depth, keyframe=False, lap=clock.lap) if enough else None
-        self._ahead.put(frame, (rgb, depth, enough, view), stage_ms)
+        return (rgb, depth, enough, view), stage_ms
+
+    def accept_ahead(self, frame: Frame, payload: tuple, stage_ms: dict[str, float]) -> None:
+        """Keep ``frame``'s :meth:`ahead_payload` for its ``track``."""
+        self._ahead.put(frame, payload, stage_ms)
 
     def _images(self, frame: Frame) -> tuple[Tensor, Tensor, bool]:
         # Non-blocking: from a pinned frame (``TUMSequence(pin_memory=True)``) the copy to a GPU overlaps.

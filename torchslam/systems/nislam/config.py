@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from ...errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, Limit, check_limits, parse_choice
+from ...errors import AT_LEAST_1, FRACTION, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_limits, parse_choice
 from ...imu import ImuNoise
 from ...kcc import KCCConfig
 
@@ -223,6 +223,13 @@ class NISlamConfig:
             (the ``backproject`` stage) run on a thread of their own while the frames before it
             are tracked (``systems.base.AheadFrames``): the same results, overlapped with
             tracking where a core is free. False: done inline by ``track``.
+        prepare_ahead_in: where that work and the reading of the frames run: ``"process"``, a
+            child process forked after ``start`` (on the CPU where the fork start method exists;
+            elsewhere the thread), which shares no interpreter lock with tracking
+            (``systems.ahead_process``), or ``"thread"`` (the default here: a frame's input
+            and back-projected cloud cost more to copy between the processes than the lock's
+            hand-overs cost tracking; README "Frames read and prepared in a child process").
+            The same results either way.
         kcc: correlator, keyframe and fusion settings. The paper's values except
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
             optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, which
@@ -252,6 +259,7 @@ class NISlamConfig:
     grey_at_depth_time: bool = True
     undistort: bool = True
     prepare_ahead: bool = True
+    prepare_ahead_in: str = "thread"
     kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01
@@ -266,5 +274,7 @@ class NISlamConfig:
 
     def __post_init__(self) -> None:
         check_limits(self)
+        if self.prepare_ahead_in not in ("process", "thread"):
+            raise ConfigError(f"prepare_ahead_in: expected 'process' or 'thread', got {self.prepare_ahead_in!r}")
         object.__setattr__(self, "attitude", parse_choice(AttitudeSource, self.attitude, "attitude"))
         object.__setattr__(self, "gravity", parse_choice(Gravity, self.gravity, "gravity"))

@@ -263,11 +263,25 @@ class NISlam:
         thread while the frames before are tracked; the cloud is ``backproject`` of the frame
         alone, as the step computes it.
         """
+        self.accept_ahead(frame, *self.ahead_payload(frame))
+
+    @property
+    def prepares_ahead_in_process(self) -> bool:
+        """Whether ``run_sequence`` reads and prepares the frames in a child process
+        (``cfg.prepare_ahead_in``; the CPU only, where a thread runs otherwise)."""
+        return self.cfg.prepare_ahead and self.cfg.prepare_ahead_in == "process" and self.device.type == "cpu"
+
+    def ahead_payload(self, frame: Frame) -> tuple[FrameInput | None, dict[str, float]]:
+        """What :meth:`prepare_ahead` computes for ``frame``, and its stage times."""
         t0 = time.perf_counter()
         input = self._frame_input(frame)
         if input is not None:
             input = replace(input, cloud=backproject([input])[0])
-        self._ahead.put(frame, input, {"backproject": 1000.0 * (time.perf_counter() - t0)})
+        return input, {"backproject": 1000.0 * (time.perf_counter() - t0)}
+
+    def accept_ahead(self, frame: Frame, payload: FrameInput | None, stage_ms: dict[str, float]) -> None:
+        """Keep ``frame``'s :meth:`ahead_payload` for its ``prepare``."""
+        self._ahead.put(frame, payload, stage_ms)
 
     def _frame_input(self, frame: Frame) -> FrameInput | None:
         """The attitude at the frame's two instants and its images on the device; None at a gap."""
