@@ -23,8 +23,8 @@ from torch import Tensor
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError
-from . import ahead_process
 from .ahead_process import ProcessSource
+from .ahead_process import available as process_available
 from .memory import check_run_memory
 
 __all__ = [
@@ -396,7 +396,7 @@ class AheadFrames:
         if self._done:
             raise StopIteration
         if self._thread is None and self._process is None:  # started on the first frame, after the system's start
-            if getattr(self.system, "prepares_ahead_in_process", False) and ahead_process.available():
+            if getattr(self.system, "prepares_ahead_in_process", False) and process_available():
                 self._process = ProcessSource(self.system, self._source, self.sequence)
             else:
                 self._thread = threading.Thread(target=self._work, name="torchslam-ahead", daemon=True)
