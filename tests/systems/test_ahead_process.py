@@ -109,6 +109,47 @@ def test_a_failed_preparation_hands_the_frame_out_unprepared():
     assert sorted(rec.accepted) == [0, 1, 3]
 
 
+def _prepared_where(queue):
+    rec = _Recorder()
+    rec.prepares_ahead_in_process = True
+    rec.prepare_ahead = lambda frame: rec.accepted.setdefault(frame.index, (frame, "thread", {}))
+    frames = [f.index for f in AheadFrames(rec, _frames(3))]
+    queue.put((frames, sorted({"thread" if p == "thread" else "process" for _, p, _ in rec.accepted.values()})))
+
+
+def test_a_daemonic_process_which_may_have_no_children_prepares_on_the_thread():
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_prepared_where, args=(queue,), daemon=True)
+    child.start()
+    frames, where = queue.get(timeout=60)
+    child.join()
+    assert frames == [0, 1, 2] and where == ["thread"]
+    assert ahead_process.available()  # here, a process that may have children
+
+
+def _gcslam_in_child(queue):
+    seq = generate_sequence(SyntheticConfig(frames=12, trajectory="orbit", seed=5, **SMALL))
+    system = GCSlam(GCSlamConfig())
+    result = run_sequence(system, seq)
+    queue.put((result.frames_processed, result.output.metrics.get("background"), system.prepares_ahead_in_process))
+
+
+def test_gcslam_runs_in_a_daemonic_process_on_threads():
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_gcslam_in_child, args=(queue,), daemon=True)
+    child.start()
+    frames, background, wants_process = queue.get(timeout=120)
+    child.join()
+    # It asks for both processes (the defaults) and gets the threads, since it may have no children.
+    assert frames == 12 and background == "thread" and wants_process
+
+
 def test_close_stops_the_child_process():
     ahead = AheadFrames(_Recorder(), _frames(50))
     next(ahead)

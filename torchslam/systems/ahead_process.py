@@ -43,8 +43,10 @@ _SLOTS = 3
 
 
 def available() -> bool:
-    """Whether frames can be prepared in a child process here (the fork start method)."""
-    return "fork" in multiprocessing.get_all_start_methods()
+    """Whether frames can be prepared in a child process here: the fork start method exists
+    and this process may have children (a daemonic process, such as a ``multiprocessing.Pool``
+    worker, may not: there the thread runs)."""
+    return "fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
 
 
 class _SlotPickler(pickle.Pickler):

@@ -517,12 +517,13 @@ def make_worker(
 ) -> Worker | ProcessWorker:
     """The worker ``cfg`` asks for: deferred, inline, a thread, or a child process.
 
-    The process (``cfg.background == "process"``) needs the fork start method and a CPU
-    front-end; elsewhere (macOS, Windows, an accelerator) the thread runs instead.
+    The process (``cfg.background == "process"``) needs the fork start method, a CPU front-end
+    and a process that may have children; elsewhere (macOS, Windows, an accelerator, a daemonic
+    process such as a ``multiprocessing.Pool`` worker) the thread runs instead.
     """
     if (
         cfg.threaded and not deferred and cfg.background == "process" and device.type == "cpu"
-        and "fork" in multiprocessing.get_all_start_methods()
+        and "fork" in multiprocessing.get_all_start_methods() and not multiprocessing.current_process().daemon
     ):
         return ProcessWorker(optimizer, insert)
     return Worker(optimizer, insert, cfg.threaded, deferred=deferred)
