@@ -121,7 +121,7 @@ def _picklable(exc: BaseException) -> BaseException:
 class ProcessSource:
     """The frames of ``source``, read and passed through ``system.ahead_payload`` in a child process.
 
-    Iterating yields ``(kind, value, seconds)`` as ``AheadFrames``' thread does: ``("frame",
+    :meth:`next` returns ``(kind, value, seconds)`` as ``AheadFrames``' thread does: ``("frame",
     frame, s)`` after ``system.accept_ahead(frame, payload, stage_ms)`` (a frame whose payload
     failed is yielded unprepared: ``track`` prepares it inline and raises the error there),
     ``("error", exc, 0)`` for an error reading a frame, ``("end", None, 0)`` at the end. Frames
@@ -154,6 +154,7 @@ class ProcessSource:
             kind, slot, data, seconds, skipped = pickle.loads(self._conn.recv_bytes())
         except EOFError:
             self._done = True
+            self.process.join(1.0)
             code = self.process.exitcode
             return "error", TorchSlamError(f"the process reading frames ahead ended unexpectedly (exit code {code})"), 0.0
         if skipped and self.sequence is not None and isinstance(getattr(self.sequence, "skipped", None), list):
@@ -186,6 +187,13 @@ class ProcessSource:
             self.process.join()
         self._conn.close()
         self._done = True
+        # The slots' memory goes now, not when this object is collected.
+        self._bufs = []
+        for m in self._maps:
+            try:
+                m.close()
+            except BufferError:  # a view of it is still held somewhere: freed with that view
+                pass
 
 
 def _child(system, source, sequence, conn, free, stop, bufs, threads) -> None:
