@@ -36,6 +36,7 @@ from torchslam.data import TUMSequence
 from torchslam.features import ORBConfig, extract_orb, hamming_distance, match_descriptors
 from torchslam.loop import MILDConfig, MILDDatabase
 from torchslam.environment import cpu_model as _cpu_model
+from torchslam.features.matching import cpu_auto_backend
 
 
 def _time(fn, repeat: int, device: str = "cpu") -> dict:
@@ -133,6 +134,8 @@ def main(argv=None) -> int:
         "opencv": cv2.__version__,
         "opencv_threads": cv2.getNumThreads(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "auto_backend_cpu": cpu_auto_backend().value,
     }
     d1, d2, source = _descriptors(args.data, args.features)
     default_threads = torch.get_num_threads()

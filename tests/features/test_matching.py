@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 import pytest
@@ -296,12 +298,60 @@ def test_cuda_kernels_equal_cpu():
     assert torch.equal(m_gpu.pairs.cpu(), m_cpu.pairs) and torch.equal(m_gpu.distances.cpu(), m_cpu.distances)
 
 
-def test_auto_backend_is_int8_on_the_cpu_and_opencv_without_an_int8_gemm(monkeypatch):
+def _slowed(fn, seconds):
+    def slow(*args):
+        time.sleep(seconds)
+        return fn(*args)
+
+    return slow
+
+
+def _probe_args():
+    gen = torch.Generator().manual_seed(0)
+    d1, d2 = torch.randint(0, 256, (2, 64, 32), dtype=torch.uint8, generator=gen)
+    return d1, d2, 50, False, None
+
+
+@pytest.mark.parametrize("slow", ["int8", "opencv"])
+def test_auto_backend_on_the_cpu_is_the_faster_one_timed_once(monkeypatch, slow):
+    # An int8 GEMM 60 x slower than OpenCV (an AVX2-only CPU) must not be picked.
+    from torchslam.features import matching
+
+    if not matching._INT8_GEMM:
+        pytest.skip("this torch build has no int8 GEMM on the CPU")
+    cpu = torch.device("cpu")
+    originals = {name: getattr(matching, name) for name in ("_match_int8", "_match_opencv")}
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    for name, fn in originals.items():
+        # The slow one sleeps; the other returns a result computed beforehand, in no time.
+        done = fn(*_probe_args())
+        monkeypatch.setattr(matching, name, _slowed(fn, 0.02) if name.endswith(slow) else (lambda *args, done=done: done))
+    fast = matching.MatchBackend.OPENCV if slow == "int8" else matching.MatchBackend.INT8
+    assert matching._resolve_backend("auto", cpu) is fast
+    # Measured once per process: a later change of speed does not move the choice.
+    for name, fn in originals.items():
+        monkeypatch.setattr(matching, name, _slowed(fn, 0.05))
+    start = time.perf_counter()
+    assert matching.cpu_auto_backend() is fast
+    assert time.perf_counter() - start < 0.05
+    for name, fn in originals.items():
+        monkeypatch.setattr(matching, name, fn)
+    # Whatever it picks, auto gives the explicit backends' matches.
+    gen = torch.Generator().manual_seed(3)
+    a, b = _correlated(gen, 300, 400)
+    ref = match_descriptors(a, b, mutual=True, backend="torch")
+    got = match_descriptors(a, b, mutual=True)
+    assert torch.equal(got.pairs, ref.pairs) and torch.equal(got.distances, ref.distances)
+
+
+def test_auto_backend_is_opencv_without_an_int8_gemm(monkeypatch):
     from torchslam.features import matching
 
     cpu = torch.device("cpu")
-    assert matching._resolve_backend("auto", cpu) is (matching.MatchBackend.INT8 if matching._INT8_GEMM else matching.MatchBackend.OPENCV)
     monkeypatch.setattr(matching, "_INT8_GEMM", False)
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_match_int8", None)  # never timed: it would fail
     assert matching._resolve_backend("auto", cpu) is matching.MatchBackend.OPENCV
+    assert matching._resolve_backend("auto", torch.device("meta")) is matching.MatchBackend.TORCH
     with pytest.raises(ConfigError, match="backend: 'int8' needs torch._int_mm"):
         matching._resolve_backend("int8", cpu)

@@ -12,6 +12,7 @@ import torch
 from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError, TorchSlamError
+from torchslam.features.matching import cpu_auto_backend
 from torchslam.registration.sparse import FrameFeatures
 from torchslam.systems import run_sequence
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
@@ -54,6 +55,14 @@ def test_process_thread_and_inline_give_the_same_trajectory_and_loops():
     assert {"optimizer/fastgo", "optimizer/loop_registration"} <= set(proc.stage_ms)
     assert proc.metrics["fastgo_ms_last"] is not None
     assert "optimization/fastgo_ms" in monitor.tags and "progress/loops_accepted" in monitor.tags
+    # Who matched: ``auto`` as resolved on this machine, the same in every run of the process.
+    assert proc.metrics["match_backend"] == inline.metrics["match_backend"] == cpu_auto_backend().value
+
+
+def test_metrics_name_a_forced_match_backend():
+    seq = generate_sequence(SyntheticConfig(frames=12, fps=10.0, seed=1, **SMALL))
+    out = _run(seq, threaded=False, sparse={"match_backend": "opencv"})
+    assert out.metrics["match_backend"] == "opencv"
 
 
 def _feats() -> FrameFeatures:

@@ -135,10 +135,11 @@ class SparseConfig:
         min_depth: keypoints with depth below this (metres) get no 3-D point.
         max_depth: keypoints with depth above this (metres) get no 3-D point.
         seed: base seed of the random choices when no generator is given.
-        match_backend: ``auto`` matches each pair with one int8 GEMM on the CPU (OpenCV where
-            torch has none; both faster there than the batched torch kernel for the few pairs of
-            one step) and all pairs at once in torch elsewhere; ``int8``, ``opencv`` or
-            ``torch`` force one. All give the same matches.
+        match_backend: ``auto`` matches each pair on the CPU with one int8 GEMM or with
+            OpenCV, whichever a timing at the process's first match found faster
+            (:func:`torchslam.features.matching.cpu_auto_backend`; both faster there than the
+            batched torch kernel for the few pairs of one step), and all pairs at once in torch
+            elsewhere; ``int8``, ``opencv`` or ``torch`` force one. All give the same matches.
         guided_radius: window of guided matching, pixels (0 disables it). When a predicted pose
             is given (:func:`register_sparse_batch`'s ``T_pred``), each frame-j keypoint is
             compared only with the frame-i keypoints whose 3-D points, moved by the prediction,
@@ -1280,7 +1281,7 @@ def register_sparse_batch(
 ) -> SparseResult:
     """Register B frame pairs: match, isometry filter, RANSAC and refinement, batched.
 
-    Matching runs per pair on the CPU (one int8 GEMM, or OpenCV) and for all pairs at once in
+    Matching runs per pair on the CPU (one int8 GEMM or OpenCV, whichever is faster there) and for all pairs at once in
     torch elsewhere (``cfg.match_backend``); the matches are padded to a common length and every
     later stage runs on the whole batch with masks. Failure (too few matches or inliers) is reported in
     ``success``, never raised; poses stay finite.

@@ -58,6 +58,7 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...errors import ConfigError, ShapeError, TorchSlamError
 from ...fastgo import PairStats, optimize_batch
+from ...features.matching import MatchBackend, cpu_auto_backend
 from ...devices import numpy_viewable
 from ...geometry import (
     PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
@@ -145,6 +146,10 @@ class GCSlam:
         # exactly ``backproject_depth``'s).
         self._pixel_rays = self.rays if self.rays is not None else undistorted_rays(self.camera, torch.float64, self.device)
         self.optimizer = Optimizer(cfg, self.monitor)
+        if self.device.type == "cpu" and cfg.sparse.match_backend is MatchBackend.AUTO:
+            # Time the CPU's matching backends once here, before the optimisation's and the
+            # frames' processes are forked, so that they inherit the choice.
+            cpu_auto_backend()
         self._worker = make_worker(self.optimizer, insert_keyframe, cfg, self.device, self.deferred)
         self.keyframes: list[_TrackKeyframe] = []
         # Prior tags: "lost" (holds the last pose), "unlinked" (an unlinked keyframe started at
@@ -612,6 +617,8 @@ class GCSlam:
             "threaded": self.cfg.threaded,
             # Where the optimisation ran: "process", "thread", "inline" or "deferred" (lockstep).
             "background": self._worker.background,
+            # Who matched ORB descriptors: sparse.match_backend, ``auto`` resolved on this machine.
+            "match_backend": _resolved_match_backend(self.cfg.sparse.match_backend, self.device),
             "loops": dict(opt.loops),
             "pairs": {"odometry": kinds.count("odometry"), "loop": kinds.count("loop")},
             # keyframe_pairs=dense: ORB-registered pairs registered again densely, and those where that failed.
@@ -629,6 +636,13 @@ class GCSlam:
             "fastgo_ms_last": fastgo[-1] if fastgo else None,
             "fastgo_ms_max": max(fastgo) if fastgo else None,
         }
+
+
+def _resolved_match_backend(backend: MatchBackend, device: torch.device) -> str:
+    """The matching backend that ``backend`` runs as on ``device`` (``auto`` resolved)."""
+    if backend is not MatchBackend.AUTO:
+        return backend.value
+    return cpu_auto_backend().value if device.type == "cpu" else MatchBackend.TORCH.value
 
 
 def track_frames(systems: list[GCSlam], frames: list[Frame], max_batch: int | None = None) -> StepReport:
