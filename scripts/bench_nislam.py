@@ -58,6 +58,8 @@ SETTINGS = {
     "features=learned": {"kcc": {"features": "learned"}},
     # each frame's orthographic image on its own optical axis (the paper) instead of the prediction
     "center=axis": {"center_on_prediction": False},
+    # the frame's channels untapered (the default before the frame taper)
+    "frame_taper=0": {"kcc": {"frame_taper": 0}},
     # the loop candidates from place recognition alone (no pose-graph proximity candidate)
     "proximity=0": {"loop": {"proximity_candidates": 0}},
     # both of the above: the settings before frames were centred and proximity candidates added

@@ -49,7 +49,7 @@ from .ortho import (
     sample_grey_warped,
 )
 from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
-from .window import Window, apply_window, kcc_window
+from .window import Window, apply_window, frame_taper, kcc_window
 
 __all__ = [
     "ChannelNorm",
@@ -74,6 +74,7 @@ __all__ = [
     "correlator_for",
     "depth_translation",
     "find_peak",
+    "frame_taper",
     "fuse_keyframe",
     "grey_from_rgb",
     "kcc_channels",

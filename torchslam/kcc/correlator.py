@@ -156,6 +156,9 @@ class KCCConfig:
             halves that pull on frames a few centimetres apart but not at the distances tracking
             reaches before a new keyframe, and did not improve trajectories, so it is off by
             default (``torchslam.kcc.window``).
+        frame_taper: pixels of a raised-cosine taper at the border of each frame's channels,
+            the keyframe's left whole (beyond the paper; 0: off, the paper). See
+            ``torchslam.kcc.window.frame_taper`` for why one side only.
         depth_median_center: select well-matched depths around their median instead of around
             0 (beyond the paper; see ``depth_translation``).
         depth_statistic: ``t_z`` as the ``"mean"`` (the paper) or ``"median"`` of the
@@ -187,6 +190,7 @@ class KCCConfig:
     channel_norm: ChannelNorm = ChannelNorm.STANDARDIZE
     fill_holes: int = 3
     window: Window = Window.NONE
+    frame_taper: int = 0
     depth_median_center: bool = False
     depth_statistic: DepthStatistic = DepthStatistic.MEAN
     soft_argmax: bool = False
@@ -198,7 +202,7 @@ class KCCConfig:
         "sigma": POSITIVE, "lam": POSITIVE, "T_c": POSITIVE, "T_d": POSITIVE, "T_K": NON_NEGATIVE, "T_M": NON_NEGATIVE,
         "ortho_height": AT_LEAST_1, "ortho_width": AT_LEAST_1, "coverage": Limit(gt=0, le=1), "sample_step": AT_LEAST_1,
         "psr_window": Limit(ge=1, odd=True), "subpixel_smoothing": POSITIVE, "subpixel_iterations": AT_LEAST_1,
-        "fill_holes": Limit(ge=1, odd=True), "temperature": POSITIVE,
+        "fill_holes": Limit(ge=1, odd=True), "temperature": POSITIVE, "frame_taper": NON_NEGATIVE,
     }
 
     def __post_init__(self) -> None:

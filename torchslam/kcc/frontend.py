@@ -23,7 +23,7 @@ from .correlator import FeatureKind, KCCConfig, KCCFilter, KernelCorrelator, kcc
 from .features import load_feature_net
 from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
-from .window import apply_window
+from .window import apply_window, frame_taper
 
 __all__ = ["TrackResult", "TrackSummary", "correlator_for", "kcc_channels", "keyframe_filter", "summarize", "track_step"]
 
@@ -190,6 +190,11 @@ def track_step(
         center = torch.round(center.to(points.device, points.dtype) / r) * r
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size, center)
     x = corr.channels(fr)
+    taper = frame_taper(size[0], size[1], k.frame_taper, x.dtype, x.device)
+    if taper is not None:
+        # The frame's channels only (the keyframe's filter is trained untapered); in place on the
+        # fresh channels where no gradient flows.
+        x = x * taper if x.requires_grad else x.mul_(taper)
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)

@@ -36,7 +36,7 @@ from torch import Tensor
 from ..cache import FifoCache
 from ..errors import check_shape, parse_choice
 
-__all__ = ["Window", "apply_window", "kcc_window"]
+__all__ = ["Window", "apply_window", "frame_taper", "kcc_window"]
 
 
 class Window(str, enum.Enum):
@@ -83,3 +83,37 @@ def apply_window(x: Tensor, kind: Window | str) -> Tensor:
     check_shape(x, "B C H W", "x")
     w = kcc_window(kind, x.shape[-2], x.shape[-1], x.dtype, x.device)
     return x if w is None else x * w
+
+
+_TAPERS: FifoCache[Tensor] = FifoCache(8)
+
+
+def frame_taper(height: int, width: int, pixels: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor | None:
+    """The (H, W) border taper of a frame's KCC channels (``KCCConfig.frame_taper``), or None for 0 pixels.
+
+    A raised cosine over the outer ``pixels`` of each side, 1 inside: at distance ``d`` from the
+    border (pixel centres, ``d = min(i + 1/2, n - i - 1/2)``) the weight is
+    ``(1 - cos(pi d / pixels)) / 2`` below ``pixels``. The 2-D taper is the product of the axes.
+
+    Only the frame's channels are tapered, never the keyframe's. A frame's window is centred on
+    its predicted content, so its border, fixed to the window, sits where the keyframe's border
+    sits when the prediction is right: with both images cut off sharply at the same window
+    border, the correlation favours the shift that lines the borders up, and every match is
+    drawn towards its prediction (and the prediction, made from earlier matches, towards zero
+    motion). Tapered on one side only, the border has no counterpart in the other image to line
+    up with. (``Window.HANN`` on both images keeps a common border structure.)
+    """
+    if not pixels:
+        return None
+    device = torch.device("cpu") if device is None else torch.device(device)
+    key = (int(height), int(width), int(pixels), dtype, device)
+
+    def compute() -> Tensor:
+        def axis(n: int) -> Tensor:
+            i = torch.arange(n, dtype=torch.float64)
+            d = torch.minimum(i + 0.5, n - i - 0.5)
+            return torch.where(d >= pixels, torch.ones_like(d), 0.5 - 0.5 * torch.cos(math.pi * d / pixels))
+
+        return (axis(height)[:, None] * axis(width)[None, :]).to(dtype=dtype, device=device)
+
+    return _TAPERS.get_or_compute(key, compute)

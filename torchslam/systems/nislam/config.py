@@ -260,7 +260,7 @@ class NISlamConfig:
     undistort: bool = True
     prepare_ahead: bool = True
     prepare_ahead_in: str = "thread"
-    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median"))
+    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median", frame_taper=24))
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01
     monitor_images_every: int = 10
