@@ -96,3 +96,18 @@ def test_taper_leaves_an_exact_prediction_exact():
     res = track_step(moved, grey, valid, torch.eye(3)[None], km, keyframe_filter(km, cfg), r, cfg, center=truth[None])
     assert res.index.abs().max().item() == 0
     torch.testing.assert_close(res.t_content[0, :2], truth, atol=0.05 * r.item(), rtol=0)
+
+
+def test_frame_channels_are_tapered_and_keyframe_channels_not():
+    # The one place that decides it: ``channels(..., frame=True)``, which the tracking step uses.
+    from torchslam.kcc import correlator_for, kcc_channels
+
+    points, grey, valid = _scene("orbit", 3)
+    cfg = KCCConfig(ortho_height=SIZE[0], ortho_width=SIZE[1], frame_taper=24)
+    r = choose_resolution(points, valid, SIZE, cfg.coverage, cfg.sample_step)
+    images = orthographic_project(points, grey, valid, None, r, SIZE)
+    plain = kcc_channels(images, KCCConfig(ortho_height=SIZE[0], ortho_width=SIZE[1]))
+    w = frame_taper(SIZE[0], SIZE[1], 24, plain.dtype)
+    assert torch.equal(kcc_channels(images, cfg), plain)
+    torch.testing.assert_close(kcc_channels(images, cfg, frame=True), plain * w, rtol=0, atol=0)
+    torch.testing.assert_close(correlator_for(cfg).channels(images, frame=True), plain * w, rtol=0, atol=0)

@@ -54,7 +54,7 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
-from .window import Window, apply_window
+from .window import Window, apply_window, taper_frame
 from .peak import Peak, _argmax, _check_response, _per_item, _refine_quadratic, _wrap, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
@@ -798,18 +798,20 @@ class KernelCorrelator(nn.Module):
                 return positive_value(raw)
         return super().__getattr__(name)
 
-    def channels(self, images) -> Tensor:
+    def channels(self, images, frame: bool = False) -> Tensor:
         """(B, C, H, W) KCC input of orthographic images (``OrthoImages`` or ``KeyframeMap``).
 
         The hand-crafted ``kcc_features`` (C = 2) or the learned network's channels
-        (``cfg.features``), then ``cfg.window``.
+        (``cfg.features``), then ``cfg.window``; for a frame's images (``frame``, the side that
+        is matched, never the side a filter is trained on) also ``cfg.frame_taper``.
         """
         cfg = self.cfg
         if self.features is None:
             z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
         else:
             z = self.features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
-        return apply_window(z, cfg.window)
+        z = apply_window(z, cfg.window)
+        return taper_frame(z, cfg.frame_taper) if frame else z
 
     def fit(self, z: Tensor) -> KCCFilter:
         """Train on (B, C, H, W) keyframe channels (see ``kcc_train``)."""

@@ -23,7 +23,7 @@ from .correlator import FeatureKind, KCCConfig, KCCFilter, KernelCorrelator, kcc
 from .features import load_feature_net
 from .fusion import KeyframeMap, depth_translation
 from .ortho import OrthoImages, orthographic_project
-from .window import apply_window, frame_taper
+from .window import apply_window, taper_frame
 
 __all__ = ["TrackResult", "TrackSummary", "correlator_for", "kcc_channels", "keyframe_filter", "summarize", "track_step"]
 
@@ -115,18 +115,19 @@ def correlator_for(cfg: KCCConfig | KernelCorrelator) -> KernelCorrelator:
     return KernelCorrelator(cfg, dtype=torch.float64, features=features)
 
 
-def kcc_channels(images: OrthoImages | KeyframeMap, cfg: KCCConfig | KernelCorrelator) -> Tensor:
+def kcc_channels(images: OrthoImages | KeyframeMap, cfg: KCCConfig | KernelCorrelator, frame: bool = False) -> Tensor:
     """(B, C, H, W) KCC input of orthographic images (``KernelCorrelator.channels``).
 
     The one recipe for keyframe and frame alike: the hand-crafted ``kcc_features`` (C = 2,
     ``cfg.channel_norm``, ``cfg.fill_holes``) or the learned channels (``cfg.features``), then
-    ``cfg.window``. Given settings rather than a correlator, learned channels use the weights
-    ``cfg.features_weights`` names (or the packaged ones).
+    ``cfg.window``, and for a frame's images (``frame``) ``cfg.frame_taper``. Given settings
+    rather than a correlator, learned channels use the weights ``cfg.features_weights`` names
+    (or the packaged ones).
     """
     if isinstance(cfg, KCCConfig) and cfg.features is FeatureKind.HANDCRAFTED:
-        z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
-        return apply_window(z, cfg.window)
-    return correlator_for(cfg).channels(images)
+        z = apply_window(kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes), cfg.window)
+        return taper_frame(z, cfg.frame_taper) if frame else z
+    return correlator_for(cfg).channels(images, frame=frame)
 
 
 def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | KernelCorrelator) -> KCCFilter:
@@ -189,12 +190,7 @@ def track_step(
         r = resolution.to(points.device, points.dtype)[:, None]
         center = torch.round(center.to(points.device, points.dtype) / r) * r
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size, center)
-    x = corr.channels(fr)
-    taper = frame_taper(size[0], size[1], k.frame_taper, x.dtype, x.device)
-    if taper is not None:
-        # The frame's channels only (the keyframe's filter is trained untapered); in place on the
-        # fresh channels where no gradient flows.
-        x = x * taper if x.requires_grad else x.mul_(taper)
+    x = corr.channels(fr, frame=True)  # tapered (``frame_taper``); the keyframe's filter is not
     pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)

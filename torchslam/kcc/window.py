@@ -36,7 +36,7 @@ from torch import Tensor
 from ..cache import FifoCache
 from ..errors import check_shape, parse_choice
 
-__all__ = ["Window", "apply_window", "frame_taper", "kcc_window"]
+__all__ = ["Window", "apply_window", "frame_taper", "kcc_window", "taper_frame"]
 
 
 class Window(str, enum.Enum):
@@ -48,9 +48,6 @@ class Window(str, enum.Enum):
 
     NONE = "none"
     HANN = "hann"
-
-
-_WINDOWS: FifoCache[Tensor] = FifoCache(8)
 
 
 def kcc_window(kind: Window | str, height: int, width: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor | None:
@@ -66,16 +63,22 @@ def kcc_window(kind: Window | str, height: int, width: int, dtype: torch.dtype =
     kind = parse_choice(Window, kind, "window")
     if kind is Window.NONE:
         return None
+
+    def axis(n: int) -> Tensor:
+        return torch.sin(math.pi * (torch.arange(n, dtype=torch.float64) + 0.5) / n).square()
+
+    return _separable((kind,), axis, height, width, dtype, device)
+
+
+_WINDOWS: FifoCache[Tensor] = FifoCache(16)
+
+
+def _separable(name: tuple, axis, height: int, width: int, dtype: torch.dtype, device) -> Tensor:
+    """The (H, W) product ``axis(H)[:, None] * axis(W)[None, :]`` of float64 1-D profiles, in
+    ``dtype`` on ``device``, kept per (``name``, size, dtype, device)."""
     device = torch.device("cpu") if device is None else torch.device(device)
-    key = (kind, int(height), int(width), dtype, device)
-
-    def compute() -> Tensor:
-        def axis(n: int) -> Tensor:
-            return torch.sin(math.pi * (torch.arange(n, dtype=torch.float64) + 0.5) / n).square()
-
-        return (axis(height)[:, None] * axis(width)[None, :]).to(dtype=dtype, device=device)
-
-    return _WINDOWS.get_or_compute(key, compute)
+    key = (*name, int(height), int(width), dtype, device)
+    return _WINDOWS.get_or_compute(key, lambda: (axis(height)[:, None] * axis(width)[None, :]).to(dtype=dtype, device=device))
 
 
 def apply_window(x: Tensor, kind: Window | str) -> Tensor:
@@ -83,9 +86,6 @@ def apply_window(x: Tensor, kind: Window | str) -> Tensor:
     check_shape(x, "B C H W", "x")
     w = kcc_window(kind, x.shape[-2], x.shape[-1], x.dtype, x.device)
     return x if w is None else x * w
-
-
-_TAPERS: FifoCache[Tensor] = FifoCache(8)
 
 
 def frame_taper(height: int, width: int, pixels: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor | None:
@@ -105,15 +105,20 @@ def frame_taper(height: int, width: int, pixels: int, dtype: torch.dtype = torch
     """
     if not pixels:
         return None
-    device = torch.device("cpu") if device is None else torch.device(device)
-    key = (int(height), int(width), int(pixels), dtype, device)
 
-    def compute() -> Tensor:
-        def axis(n: int) -> Tensor:
-            i = torch.arange(n, dtype=torch.float64)
-            d = torch.minimum(i + 0.5, n - i - 0.5)
-            return torch.where(d >= pixels, torch.ones_like(d), 0.5 - 0.5 * torch.cos(math.pi * d / pixels))
+    def axis(n: int) -> Tensor:
+        i = torch.arange(n, dtype=torch.float64)
+        d = torch.minimum(i + 0.5, n - i - 0.5)
+        return torch.where(d >= pixels, torch.ones_like(d), 0.5 - 0.5 * torch.cos(math.pi * d / pixels))
 
-        return (axis(height)[:, None] * axis(width)[None, :]).to(dtype=dtype, device=device)
+    return _separable(("frame_taper", int(pixels)), axis, height, width, dtype, device)
 
-    return _TAPERS.get_or_compute(key, compute)
+
+def taper_frame(x: Tensor, pixels: int) -> Tensor:
+    """(B, C, H, W) frame channels times ``frame_taper`` (``x`` itself for 0 pixels); in place on
+    ``x`` where no gradient flows (the channels are the caller's fresh tensor)."""
+    check_shape(x, "B C H W", "x")
+    w = frame_taper(x.shape[-2], x.shape[-1], pixels, x.dtype, x.device)
+    if w is None:
+        return x
+    return x * w if x.requires_grad else x.mul_(w)
