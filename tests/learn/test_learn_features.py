@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -11,7 +12,7 @@ import yaml
 from torchslam.app.run import resolve_config
 from torchslam.cli import main
 from torchslam.errors import ConfigError
-from torchslam.kcc import KCCConfig, KCCFeatureNet, load_feature_net
+from torchslam.kcc import KCCConfig, KCCFeatureNet, KernelCorrelator, frame_taper, load_feature_net
 from torchslam.learn import (
     FeatureTrainConfig,
     evaluate_features,
@@ -21,7 +22,7 @@ from torchslam.learn import (
     synthetic_ortho_pairs,
     train_features,
 )
-from torchslam.learn.features import _reference_psr
+from torchslam.learn.features import _correlate, _reference_psr
 
 from tests._helpers import load_script
 
@@ -132,3 +133,16 @@ def test_module_checkpoint_of_features_is_not_config_values(tmp_path):
     ckpt = save_checkpoint(tmp_path / "f.pt", KCCFeatureNet(), {"architecture": {"learned": 2, "hidden": 8}})
     with pytest.raises(ConfigError, match="holds the weights of a KCCFeatureNet module, not config values"):
         checkpoint_values(ckpt, NISlamConfig, "nislam")
+
+
+def test_training_correlates_tapered_frames_as_a_run_does(pairs):
+    # ``_correlate`` (the objective and the evaluation) tapers the frame's channels by
+    # ``cfg.frame_taper`` and trains the filter on untapered keyframe channels, as ``track_step``.
+    cfg = dataclasses.replace(SMALL_CFG, frame_taper=4)
+    (got,) = _correlate(pairs, cfg, None, (False,))
+    corr = KernelCorrelator(cfg, dtype=torch.float64)
+    x = corr.channels(pairs.frame) * frame_taper(60, 80, 4, torch.float64)
+    want = corr(x, corr.fit(corr.channels(pairs.keyframe)), pairs.resolution)
+    torch.testing.assert_close(got.t_xy, want.t_xy, rtol=0, atol=1e-7)  # metres; r_k is millimetres
+    (plain,) = _correlate(pairs, SMALL_CFG, None, (False,))
+    assert float((plain.t_xy - got.t_xy).abs().max()) > 1e-5  # the taper moves the matches

@@ -10,17 +10,19 @@ import torch
 
 from torchslam.errors import ConfigError, ShapeError
 from torchslam.geometry import se3_exp
-from torchslam.kcc import KCCConfig, Subpixel, kcc_features
+from torchslam.kcc import KCCConfig, Subpixel, frame_taper, kcc_features
 from torchslam.learn import (
     KCCPairs,
     KCCTrainConfig,
     content_translation,
     kcc_pair_errors,
     kcc_shift_loss,
+    resized_kcc_config,
     synthetic_kcc_pairs,
     train_kcc,
     tum_kcc_pairs,
 )
+from torchslam.systems.nislam import NISlamConfig
 
 SMALL = KCCConfig(ortho_height=90, ortho_width=120)
 DATA = dict(frames=30, keyframe_step=5, gaps=(2, 4), width=160, height=120)
@@ -176,3 +178,24 @@ def test_pairs_select_and_cat():
     z = kcc_features(torch.rand(1, 8, 8), torch.rand(1, 8, 8), torch.ones(1, 8, 8, dtype=torch.bool))
     same = KCCPairs(z, z.clone(), torch.ones(1), torch.zeros(1, 2))
     assert float(kcc_pair_errors(same, dataclasses.replace(SMALL, psr_window=3)).abs().max()) < 1e-3
+
+
+def test_resized_config_keeps_the_frame_taper_share_of_the_window():
+    run = NISlamConfig().kcc  # 360x480, frame_taper 24
+    assert resized_kcc_config(run, 180, 240).frame_taper == 12
+    assert resized_kcc_config(run, 90, 120).frame_taper == 6
+    assert resized_kcc_config(run, 90, 240).frame_taper == 6  # the tighter side decides
+    assert resized_kcc_config(run, 4, 5).frame_taper == 1  # a run that tapers keeps a taper
+    small = resized_kcc_config(run, 90, 120, sigma=0.3)
+    assert (small.ortho_height, small.ortho_width, small.sigma) == (90, 120, 0.3)
+    assert resized_kcc_config(KCCConfig(), 90, 120).frame_taper == 0  # the paper's: none
+    # train_kcc renders its pairs with the scaled taper of the NI-SLAM config it starts from
+    assert resized_kcc_config(run, KCCTrainConfig().ortho_height, KCCTrainConfig().ortho_width).frame_taper == 12
+
+
+def test_pairs_taper_the_frame_channels_only(pairs):
+    tapered = synthetic_kcc_pairs([0, 1], dataclasses.replace(SMALL, frame_taper=6), **DATA)
+    w = frame_taper(90, 120, 6, pairs.frame.dtype)
+    torch.testing.assert_close(tapered.keyframe, pairs.keyframe, rtol=0, atol=0)
+    torch.testing.assert_close(tapered.frame, pairs.frame * w, rtol=1e-6, atol=1e-6)
+    assert not torch.allclose(tapered.frame, pairs.frame)

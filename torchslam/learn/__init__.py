@@ -25,6 +25,7 @@ from .kcc import (
     kcc_pair_errors,
     kcc_pairs_from_points,
     kcc_shift_loss,
+    resized_kcc_config,
     synthetic_kcc_pairs,
     tum_kcc_pairs,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "load_checkpoint",
     "pair_features",
     "pose_error",
+    "resized_kcc_config",
     "rms_translation_error",
     "save_checkpoint",
     "synthetic_kcc_pairs",

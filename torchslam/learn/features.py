@@ -54,7 +54,7 @@ from ..kcc import (
 )
 from ..systems.monitor import Monitor
 from ..systems.nislam import NISlamConfig
-from .kcc import TRAJECTORIES, _check_gaps, _pair_indices, ortho_pairs_from_points
+from .kcc import TRAJECTORIES, _check_gaps, _pair_indices, ortho_pairs_from_points, resized_kcc_config
 from .train import TrainResult, _check_training
 
 __all__ = [
@@ -241,7 +241,7 @@ def _correlate(pairs: OrthoPairs, cfg: KCCConfig, net: KCCFeatureNet | None, sof
     """KCC of the pairs, one prediction per entry of ``soft``: the soft arg-max shift (True) or the
     run's peak (False, ``cfg.subpixel`` refinement). Channels and filters are computed once."""
     corr = _correlator(cfg, net)
-    x = corr.channels(pairs.frame)
+    x = corr.channels(pairs.frame, frame=True)  # tapered as in a run (``cfg.frame_taper``)
     filt = corr.fit(corr.channels(pairs.keyframe))
     return [
         kcc_predict(x, filt, cfg.sigma, pairs.resolution, psr_window=cfg.psr_window, temperature=cfg.temperature)
@@ -435,8 +435,8 @@ def train_features(cfg: FeatureTrainConfig | None = None, base: NISlamConfig | N
     cfg = cfg or FeatureTrainConfig()
     base = base or NISlamConfig()
     monitor = monitor or Monitor()
-    kcc_cfg = dataclasses.replace(base.kcc, ortho_height=cfg.ortho_height, ortho_width=cfg.ortho_width,
-                                  features=FeatureKind.HANDCRAFTED, features_weights="")
+    kcc_cfg = resized_kcc_config(base.kcc, cfg.ortho_height, cfg.ortho_width,
+                                 features=FeatureKind.HANDCRAFTED, features_weights="")
     t0 = time.perf_counter()
     logger.info("rendering %d training and %d validation sequences", len(cfg.train_seeds), len(cfg.val_seeds))
     common = dict(frames=cfg.frames, keyframe_step=cfg.keyframe_step, gaps=cfg.gaps, width=cfg.width,

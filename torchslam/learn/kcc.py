@@ -21,6 +21,7 @@ keyframes with different resolutions then count alike.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -51,6 +52,7 @@ __all__ = [
     "kcc_pairs_from_points",
     "kcc_shift_loss",
     "ortho_pairs_from_points",
+    "resized_kcc_config",
     "synthetic_kcc_pairs",
     "tum_kcc_pairs",
 ]
@@ -148,7 +150,29 @@ def kcc_pairs_from_points(
         KCCPairs in the dtype of the points.
     """
     kf, fr, t = ortho_pairs_from_points(points_k, grey_k, valid_k, points_i, grey_i, valid_i, T_wk, T_wi, cfg)
-    return KCCPairs(kcc_channels(kf, cfg), kcc_channels(fr, cfg), kf.resolution, t)
+    return KCCPairs(kcc_channels(kf, cfg), kcc_channels(fr, cfg, frame=True), kf.resolution, t)
+
+
+def resized_kcc_config(cfg: KCCConfig, ortho_height: int, ortho_width: int, **changes) -> KCCConfig:
+    """``cfg`` at another orthographic size, its ``frame_taper`` scaled with the image.
+
+    Training renders smaller orthographic images than a run (``KCCTrainConfig``'s 180×240
+    against NI-SLAM's 360×480) of the same scene extent (``choose_resolution`` picks ``r_k`` from
+    the size and ``coverage``), so the frame's border taper keeps its share of the window and of
+    the scene: ``round(frame_taper * min(ortho_height / H, ortho_width / W))`` pixels, at least 1
+    where the run tapers at all.
+
+    Args:
+        cfg: the run's settings (e.g. ``NISlamConfig().kcc``).
+        ortho_height: orthographic image height of the training pairs.
+        ortho_width: orthographic image width.
+        **changes: further fields to replace.
+    """
+    taper = cfg.frame_taper
+    if taper:
+        scale = min(ortho_height / cfg.ortho_height, ortho_width / cfg.ortho_width)
+        taper = max(1, round(taper * scale))
+    return dataclasses.replace(cfg, ortho_height=ortho_height, ortho_width=ortho_width, frame_taper=taper, **changes)
 
 
 def ortho_pairs_from_points(

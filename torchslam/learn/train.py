@@ -19,7 +19,7 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, che
 from ..fastgo import FastGOConfig, FastGOProblem, optimize_batch
 from ..systems.monitor import Monitor
 from ..systems.nislam import NISlamConfig
-from .kcc import KCCPairs, kcc_pair_errors, kcc_shift_loss, synthetic_kcc_pairs, tum_kcc_pairs
+from .kcc import KCCPairs, kcc_pair_errors, kcc_shift_loss, resized_kcc_config, synthetic_kcc_pairs, tum_kcc_pairs
 from .pairnet import (
     FalseLoopProblem,
     PairWeightNet,
@@ -175,7 +175,7 @@ def train_kcc(cfg: KCCTrainConfig | None = None, base: NISlamConfig | None = Non
     base = base or NISlamConfig()
     monitor = monitor or Monitor()
     params = learnable(base, cfg.names)
-    kcc_cfg = dataclasses.replace(base.kcc, ortho_height=cfg.ortho_height, ortho_width=cfg.ortho_width)
+    kcc_cfg = resized_kcc_config(base.kcc, cfg.ortho_height, cfg.ortho_width)
     logger.info("rendering %d training and %d validation sequences", len(cfg.train_seeds), len(cfg.val_seeds))
     train = _kcc_data(cfg, kcc_cfg, cfg.train_seeds)
     val = _kcc_data(cfg, kcc_cfg, cfg.val_seeds)
