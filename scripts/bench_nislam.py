@@ -14,6 +14,8 @@ final map.
     python scripts/bench_nislam.py --settings default,features=learned --out scripts/results/features
                                                    # learned against hand-crafted KCC channels
     python scripts/bench_nislam.py --revisit       # also each real sequence there and back
+    python scripts/bench_nislam.py --groups tuning --settings default,pixel_stride=2+kcc.frame_taper=16
+                                                   # any setting as dotted keys joined by "+"
 
 ``--revisit`` adds, for every real sequence, its there-and-back stand-in
 (``scripts/make_revisit.py``: forward, back, forward, back, written to a temporary folder of
@@ -31,6 +33,7 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
 from _bench import RESULTS, time_calls
 from make_revisit import write_revisit
@@ -77,14 +80,36 @@ SYNTHETIC_KINDS = ("handheld", "translate", "orbit", "loop")
 RPE_FRAMES = (1, 10, 30)
 
 
-def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | None = None) -> list[tuple[str, str, str, str, object]]:
+def setting_values(name: str) -> dict:
+    """The config values of a setting: a named one of ``SETTINGS``, or ``key=value`` pairs joined
+    by ``+`` with dotted keys of ``NISlamConfig`` (``pixel_stride=2+kcc.ortho_height=300``; values
+    read as YAML). Raises ValueError naming the part that is not ``key=value``."""
+    if name in SETTINGS:
+        return SETTINGS[name]
+    values: dict = {}
+    for part in name.split("+"):
+        key, eq, text = part.partition("=")
+        if not eq or not key:
+            raise ValueError(f"setting {name!r}: {part!r} is neither a named setting nor key=value")
+        *path, leaf = key.split(".")
+        node = values
+        for k in path:
+            node = node.setdefault(k, {})
+        node[leaf] = yaml.safe_load(text)
+    return values
+
+
+def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | None = None,
+           groups: tuple[str, ...] = ("tuning", "held-out")) -> list[tuple[str, str, str, str, object]]:
     """(group, sequence name, attitude, setting, how to load it) for every case whose data exists.
 
     With ``revisit`` (a folder), each real sequence's there-and-back stand-in is written there
-    and added after it, in its split.
+    and added after it, in its split. ``groups`` picks the splits to run.
     """
     cases = []
     for group, names in (("tuning", TUNING_REAL), ("held-out", HELD_OUT_REAL)):
+        if group not in groups:
+            continue
         for name in names:
             if (data_root / name / "rgb.txt").is_file():
                 folders = [(name, data_root / name)]
@@ -98,21 +123,24 @@ def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | No
     seeds = ((("tuning", TUNING_SEEDS[:1]), ("held-out", HELD_OUT_SEEDS[:1])) if quick
              else (("tuning", TUNING_SEEDS), ("held-out", HELD_OUT_SEEDS)))
     for group, group_seeds in seeds:
+        if group not in groups:
+            continue
         for seed in group_seeds:
             kind = SYNTHETIC_KINDS[seed % len(SYNTHETIC_KINDS)]
             cases += [(group, f"synthetic-{kind}-{seed}", "imu", st, (kind, seed)) for st in settings if st != "time-offset"]
     return cases
 
 
-def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | None = None) -> list[dict]:
+def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | None = None,
+             groups: tuple[str, ...] = ("tuning", "held-out")) -> list[dict]:
     rows = []
-    for group, name, att, setting, source in _cases(data_root, settings, quick, revisit):
+    for group, name, att, setting, source in _cases(data_root, settings, quick, revisit, groups):
         if isinstance(source, tuple):
             kind, seed = source
             seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind, seed=seed))
         else:
             seq = TUMSequence(source, prefetch=2, end=40 if quick else None)
-        values = {"attitude": att, **SETTINGS[setting]}
+        values = {"attitude": att, **setting_values(setting)}
         offset = None
         if setting == "time-offset":
             stream = attitude_stream(seq, config_from_dict(NISlamConfig, values))
@@ -244,7 +272,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     ap.add_argument("--out", default=str(RESULTS))
-    ap.add_argument("--settings", default=",".join(SETTINGS), help=f"comma-separated subset of {', '.join(SETTINGS)}")
+    ap.add_argument("--settings", default=",".join(SETTINGS),
+                    help=f"comma-separated: any of {', '.join(SETTINGS)}, or dotted key=value pairs joined by '+'")
+    ap.add_argument("--groups", default="tuning,held-out", help="comma-separated splits to run: tuning, held-out")
     ap.add_argument("--no-batched", action="store_true", help="skip the batched KCC stage timings")
     ap.add_argument("--revisit", action="store_true",
                     help="also run each real sequence there and back (scripts/make_revisit.py, in a temporary folder)")
@@ -258,11 +288,17 @@ def main() -> None:
     print(f"machine: {result['machine']}")
     print("accuracy and frame rate per sequence:")
     settings = args.settings.split(",")
-    unknown = [x for x in settings if x not in SETTINGS]
-    if unknown:
-        ap.error(f"--settings: unknown {', '.join(unknown)}; choose from {', '.join(SETTINGS)}")
+    for x in settings:
+        try:
+            config_from_dict(NISlamConfig, setting_values(x))
+        except (ValueError, TypeError, KeyError) as e:
+            ap.error(f"--settings: {x!r}: {e} (named settings: {', '.join(SETTINGS)})")
+    groups = tuple(args.groups.split(","))
+    if not groups or any(g not in ("tuning", "held-out") for g in groups):
+        ap.error(f"--groups: expected tuning and/or held-out, got {args.groups!r}")
+    result["groups"] = list(groups)
     with tempfile.TemporaryDirectory(prefix="torchslam-revisit-") as tmp:
-        result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None)
+        result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None, groups)
     result["revisit"] = args.revisit
     sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
     result["batched_kcc"] = []
