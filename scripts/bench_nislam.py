@@ -16,6 +16,8 @@ final map.
     python scripts/bench_nislam.py --revisit       # also each real sequence there and back
     python scripts/bench_nislam.py --groups tuning --settings default,pixel_stride=2+kcc.frame_taper=16
                                                    # any setting as dotted keys joined by "+"
+    python scripts/bench_nislam.py --revisit --only '*-there-and-back'
+                                                   # the there-and-back stand-ins alone
 
 ``--revisit`` adds, for every real sequence, its there-and-back stand-in
 (``scripts/make_revisit.py``: forward, back, forward, back, written to a temporary folder of
@@ -26,6 +28,7 @@ come back to their places, the long ones the issues measure on do.
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import os
 import tempfile
@@ -132,9 +135,11 @@ def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | No
 
 
 def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | None = None,
-             groups: tuple[str, ...] = ("tuning", "held-out")) -> list[dict]:
+             groups: tuple[str, ...] = ("tuning", "held-out"), only: tuple[str, ...] = ("*",)) -> list[dict]:
     rows = []
     for group, name, att, setting, source in _cases(data_root, settings, quick, revisit, groups):
+        if not any(fnmatch.fnmatchcase(name, pattern) for pattern in only):
+            continue
         if isinstance(source, tuple):
             kind, seed = source
             seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind, seed=seed))
@@ -275,6 +280,8 @@ def main() -> None:
     ap.add_argument("--settings", default=",".join(SETTINGS),
                     help=f"comma-separated: any of {', '.join(SETTINGS)}, or dotted key=value pairs joined by '+'")
     ap.add_argument("--groups", default="tuning,held-out", help="comma-separated splits to run: tuning, held-out")
+    ap.add_argument("--only", default="*",
+                    help="comma-separated patterns of the sequences to run (fnmatch: '*-there-and-back', 'synthetic-*')")
     ap.add_argument("--no-batched", action="store_true", help="skip the batched KCC stage timings")
     ap.add_argument("--revisit", action="store_true",
                     help="also run each real sequence there and back (scripts/make_revisit.py, in a temporary folder)")
@@ -298,7 +305,8 @@ def main() -> None:
         ap.error(f"--groups: expected tuning and/or held-out, got {args.groups!r}")
     result["groups"] = list(groups)
     with tempfile.TemporaryDirectory(prefix="torchslam-revisit-") as tmp:
-        result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None, groups)
+        result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None, groups,
+                                      tuple(args.only.split(",")))
     result["revisit"] = args.revisit
     sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
     result["batched_kcc"] = []

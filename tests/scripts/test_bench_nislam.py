@@ -30,3 +30,7 @@ def test_groups_pick_the_splits(tmp_path):
     cases = bench._cases(tmp_path, ["default"], quick=True, groups=("held-out",))
     assert cases and {c[0] for c in cases} == {"held-out"}  # no real data here: the synthetic seeds
     assert {c[1] for c in cases} == {"synthetic-handheld-100"}
+
+
+def test_only_filters_the_sequences_before_anything_runs(tmp_path):
+    assert bench.accuracy(tmp_path, True, ["default"], groups=("tuning", "held-out"), only=("no-such-*",)) == []
