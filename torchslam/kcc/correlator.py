@@ -54,7 +54,7 @@ from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, DTypeError
 from ..optim import positive_parameter, positive_value
 from ._select import where
 from .fusion import DepthStatistic
-from .window import Window, apply_window, taper_frame
+from .window import Window, apply_window, frame_taper, kcc_window, taper_frame
 from .peak import Peak, _argmax, _check_response, _per_item, _refine_quadratic, _wrap, peak_to_sidelobe, shift_variance, soft_argmax
 
 __all__ = [
@@ -73,6 +73,7 @@ __all__ = [
     "kcc_response",
     "kcc_train",
     "kernel_correlation",
+    "masked_kernel_map",
     "peak_to_sidelobe",
     "shift_variance",
     "soft_argmax",
@@ -163,6 +164,10 @@ class KCCConfig:
             0 (beyond the paper; see ``depth_translation``).
         depth_statistic: ``t_z`` as the ``"mean"`` (the paper) or ``"median"`` of the
             well-matched depth differences (``depth_translation``).
+        masked_kernel: sum each shift's kernel distance over the pixels both images hold (their
+            masks' overlap at that shift) instead of over the whole window with 0 at holes
+            (beyond the paper; see ``masked_kernel_map``): holes and invalid regions that move
+            with the camera then no longer pull the peak towards no motion.
         soft_argmax: use the differentiable soft arg-max instead of the hard peak for the shift.
         temperature: soft arg-max temperature, in units of the correlation output (≈1 at a
             perfect match).
@@ -193,6 +198,7 @@ class KCCConfig:
     frame_taper: int = 0
     depth_median_center: bool = False
     depth_statistic: DepthStatistic = DepthStatistic.MEAN
+    masked_kernel: bool = False
     soft_argmax: bool = False
     temperature: float = 0.02
     features: FeatureKind = FeatureKind.HANDCRAFTED
@@ -374,6 +380,14 @@ def kcc_features_masked(
     return standardize_masked(x, m), m
 
 
+def _fill_mask(valid: Tensor, fill_holes: int, dtype: torch.dtype) -> Tensor:
+    """(B, 1, H, W) mask of ``kcc_features_masked``: valid, or a hole with a valid pixel in its window."""
+    m = valid[:, None].to(dtype)
+    if fill_holes == 1:
+        return m
+    return (valid[:, None] | (box_sum(m, fill_holes) > 0)).to(dtype)
+
+
 def standardize_masked(x: Tensor, m: Tensor) -> Tensor:
     """Shift each image and channel of ``x`` to zero mean and unit variance over the mask, 0 off it.
 
@@ -449,6 +463,72 @@ def kernel_correlation(x: Tensor, z: Tensor, sigma) -> Tensor:
     return _kernel_map(x_hat, z_hat, _energy(x_hat, W), _energy(z_hat, W), s, H, W)
 
 
+def _mask_terms(x: Tensor, mask: Tensor) -> Tensor:
+    """(B, 2, H, W//2+1) spectra of a mask and of ``Σ_c x_c² / mask`` (0 off the mask)."""
+    # x is 0 where the mask is, so dividing by the mask clamped to the smallest normal gives 0 there.
+    q = x.square().sum(dim=1, keepdim=True) / mask.clamp_min(torch.finfo(mask.dtype).tiny)
+    return torch.fft.rfft2(torch.cat([mask, q], dim=1))
+
+
+def _masked_kernel_map(x_hat: Tensor, z_hat: Tensor, x_terms: Tensor, z_terms: Tensor, sigma: Tensor, H: int, W: int) -> Tensor:
+    """(B, H, W) masked Gaussian kernel map from spectra (``masked_kernel_map``)."""
+    C = x_hat.shape[1]
+    mx, qx = x_terms[:, 0], x_terms[:, 1]
+    d2_hat = qx * z_terms[:, 0].conj() + mx * z_terms[:, 1].conj() - 2.0 * (x_hat * z_hat.conj()).sum(dim=1)
+    d2 = torch.fft.irfft2(d2_hat, s=(H, W)).clamp_min(0.0)
+    return torch.exp(-d2 / (sigma.square() * (C * H * W)))
+
+
+def masked_kernel_map(x: Tensor, z: Tensor, sigma, x_mask: Tensor, z_mask: Tensor) -> Tensor:
+    """Gaussian kernel map of every circular shift over the pixels both images hold (``KCCConfig.masked_kernel``).
+
+    The channels are read as weights times values, ``x = w_x x̃`` and ``z = w_z z̃`` (0 where the
+    weight is 0: a hole, or a border a taper has faded out). At each shift ``τ`` (``z`` moved by
+    ``τ``, as in ``kernel_correlation``) the squared distance is summed over the overlap of the
+    two weights only::
+
+        D(τ) = Σ_p w_x(p) w_z(p-τ) Σ_c (x̃_c(p) - z̃_c(p-τ))²,   κ(τ) = exp(-D(τ) / (σ² C H W)).
+
+    The unmasked kernel (``kernel_correlation``) counts a hole as the value 0, the mean of the
+    standardised channels, so its distance also holds ``Σ x̃²`` over the frame's pixels that meet
+    a keyframe hole at that shift and ``Σ z̃²`` over the keyframe's pixels that meet a frame hole.
+    Where those holes move with the camera (its invalid borders, the sensor's hole pattern,
+    occlusion shadows), that term is smallest at no motion and pulls the peak towards it; where
+    they move with the scene (surfaces without depth), it is a cue to the shift that the masked
+    kernel gives up. With full weights the two kernels agree. The distance is not divided by the
+    overlap's size: tried on real frame pairs, the mean over the overlap measured the same
+    shifts with more frame-to-frame noise. Every term is one correlation through ``rfft2``: two
+    extra forward transforms per frame (its weights and weighted energy, in one call), the
+    keyframe's kept in its filter.
+
+    Args:
+        x: (B, C, H, W) test channels.
+        z: (B, C, H, W) keyframe channels.
+        sigma: kernel width, a float or a 0-d / (B,) tensor.
+        x_mask: (B, 1, H, W) weights of ``x`` in [0, 1].
+        z_mask: (B, 1, H, W) weights of ``z``.
+
+    Returns:
+        (B, H, W) kernel values at each shift ``τ = (row, col)``.
+    """
+    dims: dict[str, int] = {}
+    _check_images(x, "x", dims)
+    _check_images(z, "z", dims)
+    _check_mask(x_mask, x, "x_mask")
+    _check_mask(z_mask, x, "z_mask")
+    z = z.to(x.dtype)
+    H, W = x.shape[-2:]
+    s = _per_item(sigma, x, "sigma")
+    return _masked_kernel_map(
+        torch.fft.rfft2(x), torch.fft.rfft2(z), _mask_terms(x, x_mask.to(x.dtype)), _mask_terms(z, z_mask.to(x.dtype)), s, H, W
+    )
+
+
+def _check_mask(mask: Tensor, x: Tensor, name: str) -> None:
+    check_shape(mask, f"{x.shape[0]} 1 {x.shape[-2]} {x.shape[-1]}", name)
+    check_float(mask, name)
+
+
 # --------------------------------------------------------------------------------------------
 # training and prediction
 
@@ -463,6 +543,8 @@ class KCCFilter:
         h_hat: (B, H, W//2+1) complex filter ``ĥ* = ĝ / (κ̂_z(z) + λ)`` with ``ĝ = 1``.
         height: image height H.
         width: image width W.
+        mask_terms: (B, 2, H, W//2+1) spectra of the keyframe's mask and weighted energy, when
+            trained with a mask (``masked_kernel_map``); frames are then matched with theirs.
     """
 
     z_hat: Tensor
@@ -470,9 +552,10 @@ class KCCFilter:
     h_hat: Tensor
     height: int
     width: int
+    mask_terms: Tensor | None = None
 
 
-def kcc_train(z: Tensor, sigma, lam) -> KCCFilter:
+def kcc_train(z: Tensor, sigma, lam, mask: Tensor | None = None) -> KCCFilter:
     """Train a kernel cross-correlator on keyframe images (NI-SLAM Eq. (9)–(11)).
 
     The desired output is a delta at ``[0, 0]`` (§6.1), so ``ĝ = 1`` and
@@ -482,6 +565,8 @@ def kcc_train(z: Tensor, sigma, lam) -> KCCFilter:
         z: (B, C, H, W) keyframe channels (e.g. from ``kcc_features``).
         sigma: kernel width σ, a float or a 0-d / (B,) tensor (may require grad).
         lam: regulariser λ, a float or a 0-d / (B,) tensor (may require grad).
+        mask: optional (B, 1, H, W) weights of ``z``: the kernel is then ``masked_kernel_map``'s,
+            here and when frames are matched against the filter (they must pass theirs).
 
     Returns:
         KCCFilter holding the keyframe spectrum, energy and filter.
@@ -493,8 +578,14 @@ def kcc_train(z: Tensor, sigma, lam) -> KCCFilter:
     lm = _per_item(lam, z, "lam")
     z_hat = torch.fft.rfft2(z)
     ez = _energy(z_hat, W)
-    kzz_hat = torch.fft.rfft2(_kernel_map(z_hat, z_hat, ez, ez, s, H, W))
-    return KCCFilter(z_hat=z_hat, z_energy=ez, h_hat=1.0 / (kzz_hat + lm), height=H, width=W)
+    if mask is None:
+        kzz_hat = torch.fft.rfft2(_kernel_map(z_hat, z_hat, ez, ez, s, H, W))
+        return KCCFilter(z_hat=z_hat, z_energy=ez, h_hat=1.0 / (kzz_hat + lm), height=H, width=W)
+    _check_mask(mask, z, "mask")
+    mask = mask.to(z.dtype)
+    terms = _mask_terms(z, mask)
+    kzz_hat = torch.fft.rfft2(_masked_kernel_map(z_hat, z_hat, terms, terms, s, H, W))
+    return KCCFilter(z_hat=z_hat, z_energy=ez, h_hat=1.0 / (kzz_hat + lm), height=H, width=W, mask_terms=terms)
 
 
 def _check_filter(x: Tensor, filt: KCCFilter) -> None:
@@ -505,28 +596,38 @@ def _check_filter(x: Tensor, filt: KCCFilter) -> None:
         raise ShapeError(f"x: expected spatial size ({filt.height}, {filt.width}) of the filter, got {tuple(x.shape)}")
 
 
-def _response_spectrum(x: Tensor, filt: KCCFilter, sigma) -> Tensor:
+def _response_spectrum(x: Tensor, filt: KCCFilter, sigma, mask: Tensor | None = None) -> Tensor:
     H, W = filt.height, filt.width
-    x_hat = torch.fft.rfft2(x.to(filt.z_energy.dtype))
+    x = x.to(filt.z_energy.dtype)
+    x_hat = torch.fft.rfft2(x)
     s = _per_item(sigma, filt.z_energy, "sigma")
-    kxz = _kernel_map(x_hat, filt.z_hat, _energy(x_hat, W), filt.z_energy, s, H, W)
+    if filt.mask_terms is None:
+        if mask is not None:
+            raise ConfigError("mask: the filter was trained without a mask; train it with one (kcc_train(..., mask=)) to match masked frames")
+        kxz = _kernel_map(x_hat, filt.z_hat, _energy(x_hat, W), filt.z_energy, s, H, W)
+    else:
+        if mask is None:
+            raise ConfigError("mask: the filter was trained with a mask (masked kernel); pass the frame's mask too")
+        _check_mask(mask, x, "mask")
+        kxz = _masked_kernel_map(x_hat, filt.z_hat, _mask_terms(x, mask.to(x.dtype)), filt.mask_terms, s, H, W)
     return torch.fft.rfft2(kxz) * filt.h_hat  # (B, H, W//2+1)
 
 
-def kcc_response(x: Tensor, filt: KCCFilter, sigma) -> Tensor:
+def kcc_response(x: Tensor, filt: KCCFilter, sigma, mask: Tensor | None = None) -> Tensor:
     """Correlation output ``g(x) = F⁻¹(κ̂_z(x) ⊙ ĥ*)`` of test images against a trained filter (Eq. (17)).
 
     Args:
         x: (B, C, H, W) test channels, same layout as the keyframe's.
         filt: filter from ``kcc_train``.
         sigma: kernel width used at training.
+        mask: (B, 1, H, W) weights of ``x``; required by, and only by, a filter trained with a mask.
 
     Returns:
         (B, H, W) correlation output; it peaks at the content shift of ``x`` relative to the
         keyframe (see the module convention) with a value near 1 for a perfect match.
     """
     _check_filter(x, filt)
-    return torch.fft.irfft2(_response_spectrum(x, filt, sigma), s=(filt.height, filt.width))
+    return torch.fft.irfft2(_response_spectrum(x, filt, sigma, mask), s=(filt.height, filt.width))
 
 
 # --------------------------------------------------------------------------------------------
@@ -690,6 +791,7 @@ def kcc_predict(
     iterations: int = 5,
     psr_window: int = 11,
     temperature=None,
+    mask: Tensor | None = None,
 ) -> KCCPrediction:
     """Match test images against a trained KCC: response, shift, PSR and variance (Eq. (17)–(19), (22)).
 
@@ -703,6 +805,8 @@ def kcc_predict(
         iterations: Newton iterations for ``Subpixel.FOURIER``.
         psr_window: odd side of the square excluded from the PSR sidelobe.
         temperature: if given, the shift is the differentiable ``soft_argmax`` at this temperature.
+        mask: (B, 1, H, W) weights of ``x``; required by, and only by, a filter trained with a
+            mask (``masked_kernel_map``).
 
     Returns:
         KCCPrediction.
@@ -714,7 +818,7 @@ def kcc_predict(
         check_shape(resolution, f"{B}", "resolution")
         check_float(resolution, "resolution")
     H, W = filt.height, filt.width
-    g_hat = _response_spectrum(x, filt, sigma)
+    g_hat = _response_spectrum(x, filt, sigma, mask)
     g = torch.fft.irfft2(g_hat, s=(H, W))
     if temperature is not None:
         peak = _find_peak(g, None, Subpixel.NONE, smoothing, iterations)
@@ -798,27 +902,39 @@ class KernelCorrelator(nn.Module):
                 return positive_value(raw)
         return super().__getattr__(name)
 
-    def channels(self, images, frame: bool = False) -> Tensor:
+    def channels(self, images, frame: bool = False, mask: bool = False) -> Tensor | tuple[Tensor, Tensor]:
         """(B, C, H, W) KCC input of orthographic images (``OrthoImages`` or ``KeyframeMap``).
 
         The hand-crafted ``kcc_features`` (C = 2) or the learned network's channels
         (``cfg.features``), then ``cfg.window``; for a frame's images (``frame``, the side that
         is matched, never the side a filter is trained on) also ``cfg.frame_taper``.
+
+        With ``mask`` also the (B, 1, H, W) weights of those channels (``masked_kernel_map``):
+        the pixels the channels hold (valid or filled from a valid neighbour) times the window
+        and the frame's taper. Learned channels are then set to 0 off those pixels.
         """
         cfg = self.cfg
         if self.features is None:
-            z = kcc_features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+            z, m = kcc_features_masked(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
         else:
             z = self.features(images.grey, images.depth, images.valid, cfg.channel_norm, cfg.fill_holes)
+            m = _fill_mask(images.valid, cfg.fill_holes, z.dtype) if mask else None
+            z = z * m if mask else z
         z = apply_window(z, cfg.window)
-        return taper_frame(z, cfg.frame_taper) if frame else z
+        z = taper_frame(z, cfg.frame_taper) if frame else z
+        if not mask:
+            return z
+        H, W = z.shape[-2:]
+        for w in (kcc_window(cfg.window, H, W, z.dtype, z.device), frame_taper(H, W, cfg.frame_taper, z.dtype, z.device) if frame else None):
+            m = m if w is None else m * w
+        return z, m
 
-    def fit(self, z: Tensor) -> KCCFilter:
-        """Train on (B, C, H, W) keyframe channels (see ``kcc_train``)."""
-        return kcc_train(z, self.sigma.to(z.dtype), self.lam.to(z.dtype))
+    def fit(self, z: Tensor, mask: Tensor | None = None) -> KCCFilter:
+        """Train on (B, C, H, W) keyframe channels, with their weights for the masked kernel (see ``kcc_train``)."""
+        return kcc_train(z, self.sigma.to(z.dtype), self.lam.to(z.dtype), mask)
 
-    def forward(self, x: Tensor, filt: KCCFilter, resolution: Tensor | None = None) -> KCCPrediction:
-        """Match (B, C, H, W) frame channels against ``filt`` (see ``kcc_predict``)."""
+    def forward(self, x: Tensor, filt: KCCFilter, resolution: Tensor | None = None, mask: Tensor | None = None) -> KCCPrediction:
+        """Match (B, C, H, W) frame channels (and their weights, for a masked filter) against ``filt`` (see ``kcc_predict``)."""
         cfg = self.cfg
         return kcc_predict(
             x,
@@ -830,4 +946,5 @@ class KernelCorrelator(nn.Module):
             iterations=cfg.subpixel_iterations,
             psr_window=cfg.psr_window,
             temperature=self.temperature.to(x.dtype) if cfg.soft_argmax else None,
+            mask=mask,
         )

@@ -141,6 +141,8 @@ def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | K
         KCCFilter, B keyframes.
     """
     corr = correlator_for(correlator)
+    if corr.cfg.masked_kernel:
+        return corr.fit(*corr.channels(kf_map, mask=True))
     return corr.fit(corr.channels(kf_map))
 
 
@@ -190,8 +192,12 @@ def track_step(
         r = resolution.to(points.device, points.dtype)[:, None]
         center = torch.round(center.to(points.device, points.dtype) / r) * r
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size, center)
-    x = corr.channels(fr, frame=True)  # tapered (``frame_taper``); the keyframe's filter is not
-    pred = corr(x, kf_filter, resolution)
+    if k.masked_kernel:
+        x, w = corr.channels(fr, frame=True, mask=True)
+        pred = corr(x, kf_filter, resolution, mask=w)
+    else:
+        x = corr.channels(fr, frame=True)  # tapered (``frame_taper``); the keyframe's filter is not
+        pred = corr(x, kf_filter, resolution)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
     t_xy = pred.t_xy if center is None else pred.t_xy + center
