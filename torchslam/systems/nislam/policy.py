@@ -79,7 +79,9 @@ class KeyframePolicy:
         """Whether ``position`` (3,) departs from ``predicted`` (3,) by more than ``max_jump_m``."""
         return predicted is not None and float((position - predicted).norm()) > self.max_jump_m
 
-    def decide(self, psr: float, depth_ok: bool, position: Tensor, predicted: Tensor | None, can_retry: bool) -> Verdict:
+    def decide(
+        self, psr: float, depth_ok: bool, position: Tensor, predicted: Tensor | None, can_retry: bool, check_jump: bool = True
+    ) -> Verdict:
         """Decide on one match.
 
         Args:
@@ -88,11 +90,15 @@ class KeyframePolicy:
             position: (3,) float64 the frame's position from the match, metres.
             predicted: (3,) float64 constant-velocity prediction of it, or None before two frames.
             can_retry: a well-tracked frame since the current keyframe can become the keyframe.
+            check_jump: test ``position`` against ``predicted`` (``max_jump_m``). False where the
+                prediction rests on a frame placed on the prediction itself: then every later
+                frame that moves otherwise than that stale velocity would count as a jump, be
+                placed on the prediction again, and tracking would never return.
 
         Returns:
             Verdict.
         """
-        jump = self.jumped(position, predicted)
+        jump = check_jump and self.jumped(position, predicted)
         if not (psr < self.T_K or not depth_ok or jump):
             return Verdict(Action.TRACKED, fuse=psr > self.T_M)
         if can_retry:

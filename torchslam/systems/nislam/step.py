@@ -133,6 +133,9 @@ class MatchRequest:
         center: (1, 2) content translation the frame's orthographic image is centred on
             (``track_step``'s ``center``: the prediction in the keyframe's attitude frame), or
             None: its own optical axis.
+        check_jump: the keyframe policy may test the match against ``p_pred`` for an
+            implausible jump; False where the prediction rests on a frame placed on the motion
+            prior (a velocity taken from predictions is no evidence against a measurement).
     """
 
     input: FrameInput
@@ -146,6 +149,7 @@ class MatchRequest:
     correlator: KernelCorrelator
     retried: bool = False
     center: Tensor | None = None
+    check_jump: bool = True
 
     @property
     def batch_key(self) -> tuple:

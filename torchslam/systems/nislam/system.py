@@ -340,7 +340,7 @@ class NISlam:
         T_wi = self._pose(summary.t_content, request.R_wi)
         can_retry = not request.retried and self._well_tracked is not None
         psr = summary.psr
-        verdict = self.policy.decide(psr, summary.depth_ok, T_wi[:3, 3], request.p_pred, can_retry)
+        verdict = self.policy.decide(psr, summary.depth_ok, T_wi[:3, 3], request.p_pred, can_retry, request.check_jump)
         if verdict.action is Action.RETRY:
             # The frame matches its keyframe poorly. Its own estimate is the least reliable one,
             # so the last well-tracked frame becomes the keyframe and this frame is matched again.
@@ -392,7 +392,14 @@ class NISlam:
             input=input, cloud=cloud, R_wi=R_wi, p_pred=p_pred,
             R_kf_frame=(kf.T_wk[:3, :3].T @ R_wi)[None], kf_map=kf.map, kf_filter=self._ensure_filter(kf),
             resolution=kf.resolution, correlator=self.correlator, retried=retried, center=center,
+            check_jump=self._prediction_measured(),
         )
+
+    def _prediction_measured(self) -> bool:
+        """Whether the two frames the constant-velocity prediction comes from were both measured,
+        not placed on the motion prior (``_predicted_position``)."""
+        prior = self.frames.prior
+        return all(p is None for p in prior[max(self._history_start, len(prior) - 2):])
 
     def _pose(self, t_content: Tensor, R_wi: Tensor) -> Tensor:
         """(4, 4) pose of a frame matched against the current keyframe, from its (3,) host ``t_content``."""
