@@ -32,6 +32,7 @@ from .correlator import (
     kcc_response,
     kcc_train,
     kernel_correlation,
+    masked_kernel_map,
     spectral_energy,
     standardize_masked,
 )
@@ -85,6 +86,7 @@ __all__ = [
     "kcc_train",
     "kcc_window",
     "kernel_correlation",
+    "masked_kernel_map",
     "keyframe_filter",
     "keyframe_map",
     "load_feature_net",
