@@ -232,20 +232,33 @@ def test_keyframe_policy_decides_in_one_place():
     assert strict.decide(80.0, True, far, here, can_retry=False).use_prior
     # A prediction made from frames placed on it is not evidence of a jump; the PSR still counts.
     assert policy.decide(80.0, True, far, here, can_retry=False, check_jump=False).action is Action.TRACKED
+    # A match good enough to be fused (PSR above T_M) is trusted over the prediction.
+    v = policy.decide(120.0, True, far, here, can_retry=False)
+    assert v.action is Action.TRACKED and v.fuse
     v = policy.decide(40.0, True, far, here, can_retry=False, check_jump=False)
     assert v.action is Action.NEW_KEYFRAME and v.use_prior
 
 
 def test_frames_placed_on_the_prior_do_not_lock_tracking_onto_it():
-    # With a jump test this strict, every few frames depart from the constant-velocity
-    # prediction by "too much" and are placed on it. A prediction made from such frames carries
-    # a velocity that is no measurement: tested against it, every later frame used to count as
-    # a jump too, was placed on the prediction again, and tracking never returned (38 of 40
-    # frames on the prior, ATE 4 cm). Now the frames after one on the prior are not tested for
-    # jumps and tracking resumes.
+    # With a jump test this strict, applied to every match (T_M out of reach), every few frames
+    # depart from the constant-velocity prediction by "too much" and are placed on it. A
+    # prediction made from such frames carries a velocity that is no measurement: tested
+    # against it, every later frame used to count as a jump too, was placed on the prediction
+    # again, and tracking never returned (38 of 40 frames on the prior, ATE 4 cm). Now the
+    # frames after one on the prior are not tested for jumps and tracking resumes.
+    seq = generate_sequence(SyntheticConfig(frames=40, trajectory="translate", seed=1, **SMALL))
+    result, a = _run(seq, attitude="imu", loop={"enabled": False}, max_jump_m=0.001, kcc={"T_M": 1e12})
+    assert 1 <= result.output.metrics["motion_prior_frames"] <= 10
+    assert a.stats["rmse"] < 0.005, a.stats
+
+
+def test_confident_matches_are_trusted_over_the_prediction():
+    # The same strict jump test at the default T_M: these synthetic matches all score far above
+    # it (PSR in the tens of thousands), so none is tested against the prediction.
     seq = generate_sequence(SyntheticConfig(frames=40, trajectory="translate", seed=1, **SMALL))
     result, a = _run(seq, attitude="imu", loop={"enabled": False}, max_jump_m=0.001)
-    assert 1 <= result.output.metrics["motion_prior_frames"] <= 10
+    assert result.output.metrics["motion_prior_frames"] == 0
+    assert len(result.output.keyframe_indices) == 1
     assert a.stats["rmse"] < 0.005, a.stats
 
 

@@ -196,7 +196,8 @@ class NISlamConfig:
         max_jump_m: a frame whose position departs from the constant-velocity prediction by
             more than this is treated like a PSR collapse (beyond the paper: a false
             correlation peak can score just above T_K while the true peak fades); ``inf``
-            turns the test off.
+            turns the test off. A match above ``kcc.T_M`` (one good enough to be fused) is
+            trusted over the prediction and not tested.
         lost_uses_prior: a frame that is lost (PSR < T_K or no depth match) even against the
             fresh keyframe made from the last well-tracked frame takes the constant-velocity
             prediction as its position instead of its own correlation estimate, and starts the

@@ -61,7 +61,8 @@ class KeyframePolicy:
     Attributes:
         T_K: PSR below which a match is lost (NI-SLAM Eq. (22)).
         T_M: PSR above which a tracked frame is fused into its keyframe (§8).
-        max_jump_m: largest plausible distance from the predicted position, metres (``inf``: off).
+        max_jump_m: largest plausible distance from the predicted position, metres (``inf``: off),
+            for a match at most ``T_M`` (one that would not be fused).
         lost_uses_prior: a frame lost even against a fresh keyframe takes the prediction as its position.
     """
 
@@ -98,7 +99,9 @@ class KeyframePolicy:
         Returns:
             Verdict.
         """
-        jump = check_jump and self.jumped(position, predicted)
+        # A match confident enough to be fused is trusted over the prediction: the jump test is
+        # for false peaks that score just above T_K while the true one fades.
+        jump = check_jump and psr <= self.T_M and self.jumped(position, predicted)
         if not (psr < self.T_K or not depth_ok or jump):
             return Verdict(Action.TRACKED, fuse=psr > self.T_M)
         if can_retry:
