@@ -141,9 +141,8 @@ def keyframe_filter(kf_map: KeyframeMap | OrthoImages, correlator: KCCConfig | K
         KCCFilter, B keyframes.
     """
     corr = correlator_for(correlator)
-    if corr.cfg.masked_kernel:
-        return corr.fit(*corr.channels(kf_map, mask=True))
-    return corr.fit(corr.channels(kf_map))
+    z, w = corr.channels(kf_map, mask=True) if corr.cfg.masked_kernel else (corr.channels(kf_map), None)
+    return corr.fit(z, w)
 
 
 def track_step(
@@ -192,12 +191,9 @@ def track_step(
         r = resolution.to(points.device, points.dtype)[:, None]
         center = torch.round(center.to(points.device, points.dtype) / r) * r
     fr = orthographic_project(points, grey, valid, R_kf_frame.to(points.device, points.dtype), resolution, size, center)
-    if k.masked_kernel:
-        x, w = corr.channels(fr, frame=True, mask=True)
-        pred = corr(x, kf_filter, resolution, mask=w)
-    else:
-        x = corr.channels(fr, frame=True)  # tapered (``frame_taper``); the keyframe's filter is not
-        pred = corr(x, kf_filter, resolution)
+    # Tapered (``frame_taper``); the keyframe's filter is not. Weights only for the masked kernel.
+    x, w = corr.channels(fr, frame=True, mask=True) if k.masked_kernel else (corr.channels(fr, frame=True), None)
+    pred = corr(x, kf_filter, resolution, mask=w)
     dz = depth_translation(fr, kf_map, pred.index, k.T_c, k.T_d, k.depth_median_center, k.depth_statistic)
     n_valid = fr.valid.flatten(1).sum(-1).clamp_min(1)
     t_xy = pred.t_xy if center is None else pred.t_xy + center
