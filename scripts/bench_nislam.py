@@ -19,6 +19,11 @@ final map.
     python scripts/bench_nislam.py --revisit --only '*-there-and-back'
                                                    # the there-and-back stand-ins alone
 
+``--windows L`` adds, for every real sequence and stand-in, its windows of ``L`` frames at most
+``L / 2`` frames apart (``<name>@<start>``, in the sequence's split): a run's ATE on a 200-300
+frame sequence depends on where its few keyframes happen to fall, so a setting compared over
+several windows of the same frames is judged on more than one draw of that chance.
+
 ``--revisit`` adds, for every real sequence, its there-and-back stand-in
 (``scripts/make_revisit.py``: forward, back, forward, back, written to a temporary folder of
 links) as the sequence ``<name>-there-and-back`` in the same split: the shipped sequences never
@@ -28,6 +33,7 @@ come back to their places, the long ones the issues measure on do.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fnmatch
 import json
 import os
@@ -83,6 +89,28 @@ SYNTHETIC_KINDS = ("handheld", "translate", "orbit", "loop")
 RPE_FRAMES = (1, 10, 30)
 
 
+@dataclasses.dataclass(frozen=True)
+class Window:
+    """Frames ``start`` to ``end`` (exclusive) of the real sequence in ``folder`` (``--windows``)."""
+
+    folder: Path
+    start: int
+    end: int
+
+
+def window_starts(frames: int, length: int) -> list[int]:
+    """Starts of the ``length``-frame windows of a ``frames``-frame sequence: the fewest windows
+    at most ``length // 2`` frames apart that reach from its first frame to its last, evenly
+    spread (none when the sequence is shorter than a window)."""
+    if length < 2:
+        raise ValueError(f"--windows: a window needs at least 2 frames, got {length}")
+    if frames < length:
+        return []
+    span = frames - length
+    k = -(-span // max(length // 2, 1)) + 1  # ceil(span / step) + 1
+    return [round(i * span / (k - 1)) for i in range(k)] if k > 1 else [0]
+
+
 def setting_values(name: str) -> dict:
     """The config values of a setting: a named one of ``SETTINGS``, or ``key=value`` pairs joined
     by ``+`` with dotted keys of ``NISlamConfig`` (``pixel_stride=2+kcc.ortho_height=300``; values
@@ -103,11 +131,12 @@ def setting_values(name: str) -> dict:
 
 
 def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | None = None,
-           groups: tuple[str, ...] = ("tuning", "held-out")) -> list[tuple[str, str, str, str, object]]:
+           groups: tuple[str, ...] = ("tuning", "held-out"), windows: int | None = None) -> list[tuple[str, str, str, str, object]]:
     """(group, sequence name, attitude, setting, how to load it) for every case whose data exists.
 
     With ``revisit`` (a folder), each real sequence's there-and-back stand-in is written there
-    and added after it, in its split. ``groups`` picks the splits to run.
+    and added after it, in its split. With ``windows`` (frames), the windows (``window_starts``)
+    of each real sequence and stand-in follow them. ``groups`` picks the splits to run.
     """
     cases = []
     for group, names in (("tuning", TUNING_REAL), ("held-out", HELD_OUT_REAL)):
@@ -120,6 +149,10 @@ def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | No
                     stand_in = revisit / f"{name}_palindrome"
                     write_revisit(data_root / name, stand_in)
                     folders.append((f"{name}-there-and-back", stand_in))
+                if windows is not None:
+                    for label, folder in list(folders):
+                        n = len(TUMSequence(folder))
+                        folders += [(f"{label}@{s}", Window(folder, s, s + windows)) for s in window_starts(n, windows)]
                 for label, folder in folders:
                     for att in ("groundtruth", "simulated"):
                         cases += [(group, label, att, st, folder) for st in settings]
@@ -135,14 +168,17 @@ def _cases(data_root: Path, settings: list[str], quick: bool, revisit: Path | No
 
 
 def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | None = None,
-             groups: tuple[str, ...] = ("tuning", "held-out"), only: tuple[str, ...] = ("*",)) -> list[dict]:
+             groups: tuple[str, ...] = ("tuning", "held-out"), only: tuple[str, ...] = ("*",),
+             windows: int | None = None) -> list[dict]:
     rows = []
-    for group, name, att, setting, source in _cases(data_root, settings, quick, revisit, groups):
+    for group, name, att, setting, source in _cases(data_root, settings, quick, revisit, groups, windows):
         if not any(fnmatch.fnmatchcase(name, pattern) for pattern in only):
             continue
         if isinstance(source, tuple):
             kind, seed = source
             seq = generate_sequence(SyntheticConfig(frames=60 if quick else 300, trajectory=kind, seed=seed))
+        elif isinstance(source, Window):
+            seq = TUMSequence(source.folder, prefetch=2, start=source.start, end=source.end)
         else:
             seq = TUMSequence(source, prefetch=2, end=40 if quick else None)
         values = {"attitude": att, **setting_values(setting)}
@@ -283,6 +319,8 @@ def main() -> None:
     ap.add_argument("--only", default="*",
                     help="comma-separated patterns of the sequences to run (fnmatch: '*-there-and-back', 'synthetic-*')")
     ap.add_argument("--no-batched", action="store_true", help="skip the batched KCC stage timings")
+    ap.add_argument("--windows", type=int, default=None, metavar="L",
+                    help="also run each real sequence's windows of L frames, at most L/2 frames apart (<name>@<start>)")
     ap.add_argument("--revisit", action="store_true",
                     help="also run each real sequence there and back (scripts/make_revisit.py, in a temporary folder)")
     args = ap.parse_args()
@@ -300,14 +338,17 @@ def main() -> None:
             config_from_dict(NISlamConfig, setting_values(x))
         except (ValueError, TypeError, KeyError) as e:
             ap.error(f"--settings: {x!r}: {e} (named settings: {', '.join(SETTINGS)})")
+    if args.windows is not None and args.windows < 2:
+        ap.error(f"--windows: a window needs at least 2 frames, got {args.windows}")
     groups = tuple(args.groups.split(","))
     if not groups or any(g not in ("tuning", "held-out") for g in groups):
         ap.error(f"--groups: expected tuning and/or held-out, got {args.groups!r}")
     result["groups"] = list(groups)
     with tempfile.TemporaryDirectory(prefix="torchslam-revisit-") as tmp:
         result["accuracy"] = accuracy(root, args.quick, settings, Path(tmp) if args.revisit else None, groups,
-                                      tuple(args.only.split(",")))
+                                      tuple(args.only.split(",")), args.windows)
     result["revisit"] = args.revisit
+    result["windows"] = args.windows
     sizes = [1, 4] if args.quick else [1, 2, 4, 8, 16, 32, 64]
     result["batched_kcc"] = []
     if not args.no_batched:

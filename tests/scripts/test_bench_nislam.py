@@ -34,3 +34,31 @@ def test_groups_pick_the_splits(tmp_path):
 
 def test_only_filters_the_sequences_before_anything_runs(tmp_path):
     assert bench.accuracy(tmp_path, True, ["default"], groups=("tuning", "held-out"), only=("no-such-*",)) == []
+
+
+def test_window_starts_cover_the_sequence_evenly():
+    assert bench.window_starts(204, 120) == [0, 42, 84]
+    assert bench.window_starts(300, 120) == [0, 60, 120, 180]
+    assert bench.window_starts(120, 120) == [0]
+    assert bench.window_starts(50, 120) == []  # shorter than a window: none
+    for frames, length in ((204, 100), (300, 120), (813, 150), (1197, 200)):
+        starts = bench.window_starts(frames, length)
+        assert starts[0] == 0 and starts[-1] == frames - length  # first frame to last
+        assert all(0 < b - a <= length // 2 for a, b in zip(starts, starts[1:]))  # no gap, no repeat
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        bench.window_starts(100, 1)
+
+
+def test_windows_are_cases_of_their_sequences_split(tmp_path):
+    from tests._helpers import copy_tum_frames, data_root
+
+    src = data_root() / "tum_fr1_xyz"
+    if not (src / "rgb.txt").is_file():
+        pytest.skip(f"{src}: the shipped fr1/xyz frames are not there (TORCHSLAM_DATA)")
+    n = len(bench.TUMSequence(copy_tum_frames(src, tmp_path / "tum_fr1_xyz", 30)))  # frames that pair up
+    cases = bench._cases(tmp_path, ["default"], quick=True, groups=("tuning",), windows=20)
+    real = [(c[1], c[2], c[4]) for c in cases if not c[1].startswith("synthetic")]
+    assert [name for name, att, _ in real if att == "groundtruth"] == ["tum_fr1_xyz", "tum_fr1_xyz@0", f"tum_fr1_xyz@{n - 20}"]
+    window = [w for name, att, w in real if name == f"tum_fr1_xyz@{n - 20}"][0]
+    assert (window.start, window.end) == (n - 20, n)
+    assert len(bench.TUMSequence(window.folder, start=window.start, end=window.end)) == 20
