@@ -270,3 +270,37 @@ def test_options_are_enums_accepting_todays_strings():
     assert cfg.attitude == "groundtruth"
     with pytest.raises(ConfigError, match=re.escape("gravity: 'w' is not one of ['auto', 'x', '-x', 'y', '-y', 'z', '-z']")):
         NISlamConfig(gravity="w")
+
+
+def test_prediction_carries_across_an_accepted_loop(monkeypatch):
+    # An accepted loop restarts the velocity history (keyframes moved by different amounts), but
+    # the camera's velocity carries on: the frames right after the loop are still predicted,
+    # centred and jump-tested, instead of being matched blind.
+    import torchslam.systems.nislam.step as step
+    import torchslam.systems.nislam.system as system
+
+    seen, accepted_at = [], []
+    real_match, real_try = step.match, system.NISlam._try_loop
+
+    def spy(requests):
+        out = real_match(requests)
+        seen.extend((r, s) for r, s in zip(requests, out[2]))
+        return out
+
+    def try_loop(self, *args, **kwargs):
+        ok = real_try(self, *args, **kwargs)
+        if ok:
+            accepted_at.append(len(self.frames))
+        return ok
+
+    monkeypatch.setattr(step, "match", spy)
+    monkeypatch.setattr(system.NISlam, "_try_loop", try_loop)
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    result, a = _run(seq)
+    assert result.output.metrics["loops"]["accepted"] >= 1 and accepted_at
+    assert a.stats["rmse"] < 0.01, a.stats
+    after = [(r, s) for r, s in seen if r.input.frame.index >= 2]
+    assert after and all(r.p_pred is not None for r, _ in after)  # none matched without a prediction
+    # The first frames after each loop are centred on their prediction like any other.
+    firsts = [r for r, _ in after if any(r.input.frame.index in (n, n + 1) for n in accepted_at)]
+    assert firsts and all(r.center is not None for r in firsts)

@@ -211,6 +211,9 @@ class NISlam:
         self._well_tracked: _Placed | None = None  # the last well-tracked frame since the current keyframe
         self.motion_prior_frames = 0
         self._history_start = 0
+        # The velocity the prediction used when an accepted loop restarted the history, rotated with
+        # the correction: it predicts the first two frames after the loop (``_predicted_position``).
+        self._carried_velocity: Tensor | None = None
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         self._response_keyframe: int | None = None  # keyframe whose first match's response is to be logged
         # Frames done by ``prepare_ahead`` (another thread) and not yet tracked: each one's input
@@ -410,20 +413,33 @@ class NISlam:
         return se3_from_Rt(R_wi, kf.T_wk[:3, 3] + R_wk @ p_k)
 
     def _predicted_position(self, t: float) -> Tensor | None:
-        """Constant-velocity prediction from the last two recorded frames (None before two).
+        """Constant-velocity prediction from the last recorded frame (None before two frames).
 
         A loop correction moves keyframes by different amounts, so velocities straddling one are
-        meaningless: the history restarts after every accepted loop.
+        meaningless: the history restarts after every accepted loop, and until two frames are
+        recorded after it, the velocity from before the loop (``_carried_velocity``) carries the
+        prediction from the last recorded frame's corrected position.
         """
         log = self.frames
-        if len(log) - self._history_start < 2:
+        if not len(log):
             return None
+        v = self._velocity()
+        if v is None:
+            return None
+        p = (self.keyframes[log.kf[-1]].T_wk @ log.T_kf[-1])[:3, 3]
+        return p + v * (t - log.time[-1])
+
+    def _velocity(self) -> Tensor | None:
+        """(3,) float64 world velocity of the prediction, m/s: from the last two recorded frames
+        since the history restarted, else the one carried across the latest loop (or None)."""
+        log = self.frames
+        if len(log) - self._history_start < 2:
+            return self._carried_velocity
         T = [self.keyframes[log.kf[k]].T_wk @ log.T_kf[k] for k in (-2, -1)]
         t1, t2 = log.time[-2], log.time[-1]
         if not t2 > t1:
-            return T[1][:3, 3]
-        v = (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
-        return T[1][:3, 3] + v * (t - t2)
+            return torch.zeros(3, dtype=T[1].dtype)
+        return (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
 
     def _rebase_last_frame(self) -> None:
         """The newest recorded frame became a keyframe: express it relative to itself."""
@@ -752,9 +768,14 @@ class NISlam:
             return False
         self._add_edge(j_old, k_new, T_jk, info, test_info, loop=True)
         counts["accepted"] += 1
+        # The camera's velocity does not change with the correction; its direction turns with the
+        # newest keyframe's rotation.
+        v = self._velocity()
+        R_before = self.keyframes[-1].T_wk[:3, :3]
         self._history_start = len(self.frames)
         for kf, T in zip(self.keyframes[lo:], res.T_wc):
             kf.T_wk = T
+        self._carried_velocity = None if v is None else (self.keyframes[-1].T_wk[:3, :3] @ R_before.T) @ v
         # Fuse the back-end into the attitude: the newest keyframe's optimised rotation replaces
         # the stream's, and the same correction applies to the frames that follow.
         newest = self.keyframes[-1]
