@@ -235,7 +235,10 @@ class NISlamConfig:
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
             optical axis of more than ``T_d`` (10 cm) since the keyframe matches no pixel, which
             breaks tracking on hand-held sequences; and ``depth_statistic``, "median" here
-            (``depth_translation``). ``kcc.T_K`` and ``kcc.T_M`` are read, with ``max_jump_m``
+            (``depth_translation``); and ``masked_kernel``, on here: the kernel distance over the
+            pixels both images hold, so the sensor's holes, which move with the camera, do not
+            pull each match towards no motion (README "masked-kernel-windows"). ``kcc.T_K`` and
+            ``kcc.T_M`` are read, with ``max_jump_m``
             and ``lost_uses_prior``, by the keyframe policy (``policy.KeyframePolicy``).
         loop: loop closure settings.
         map_voxel: voxel size of ``map.ply``, metres.
@@ -261,7 +264,9 @@ class NISlamConfig:
     undistort: bool = True
     prepare_ahead: bool = True
     prepare_ahead_in: str = "thread"
-    kcc: KCCConfig = field(default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median", frame_taper=24))
+    kcc: KCCConfig = field(
+        default_factory=lambda: KCCConfig(depth_median_center=True, depth_statistic="median", frame_taper=24, masked_kernel=True)
+    )
     loop: LoopConfig = field(default_factory=LoopConfig)
     map_voxel: float = 0.01
     monitor_images_every: int = 10
