@@ -207,6 +207,7 @@ def accuracy(data_root: Path, quick: bool, settings: list[str], revisit: Path | 
             "group": group, "sequence": name, "attitude": att, "setting": setting, "attitude_time_offset_s": offset,
             "frames": len(seq), "tracked": len(out.T_wc),
             "keyframes": len(out.keyframe_indices), "loops_accepted": out.metrics["loops"]["accepted"],
+            "prior_frames": out.metrics["motion_prior_frames"],
             "ate_rmse_m": a.stats["rmse"], "rpe_rmse_mm": rpe_mm,
             "paper_ate_rmse_m": PAPER_ATE_M.get(name) if att == "groundtruth" else None,
             "fps_end_to_end": res.fps_end_to_end, "fps_compute": res.fps_compute, "wall_s": wall,

@@ -213,8 +213,9 @@ def test_frames_on_the_motion_prior_are_not_counted_as_tracked(tmp_path):
 def test_keyframe_policy_decides_in_one_place():
     from torchslam.systems.nislam.policy import Action, KeyframePolicy
 
-    policy = KeyframePolicy.of(NISlamConfig())
-    assert (policy.T_K, policy.T_M, policy.max_jump_m) == (50.0, 100.0, 0.1)
+    assert KeyframePolicy.of(NISlamConfig()) == KeyframePolicy(T_K=50.0, T_M=100.0, max_jump_m=0.1, lost_uses_prior=True, lost_agree_m=0.02)
+    # Without the agreement rule (next test): a lost match takes the prediction wherever it lies.
+    policy = KeyframePolicy.of(NISlamConfig(lost_agree_m=0.0))
     here, far = torch.zeros(3, dtype=torch.float64), torch.tensor([0.2, 0.0, 0.0], dtype=torch.float64)
     # Tracked, fused above T_M only.
     assert policy.decide(120.0, True, here, here, can_retry=True).fuse
@@ -237,6 +238,29 @@ def test_keyframe_policy_decides_in_one_place():
     assert v.action is Action.TRACKED and v.fuse
     v = policy.decide(40.0, True, far, here, can_retry=False, check_jump=False)
     assert v.action is Action.NEW_KEYFRAME and v.use_prior
+
+
+def test_a_lost_match_that_agrees_with_the_prediction_keeps_its_own_position():
+    from torchslam.systems.nislam.policy import Action, KeyframePolicy
+
+    policy = KeyframePolicy.of(NISlamConfig(lost_agree_m=0.02))
+    pred = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    near, off = pred + torch.tensor([0.0, 0.015, 0.0], dtype=torch.float64), pred + torch.tensor([0.025, 0.0, 0.0], dtype=torch.float64)
+    # Lost for its PSR, no keyframe to retry against: within lost_agree_m of the prediction the
+    # frame keeps its own estimate, beyond it the prediction.
+    v = policy.decide(40.0, True, near, pred, can_retry=False)
+    assert v.action is Action.NEW_KEYFRAME and not v.use_prior
+    assert policy.decide(40.0, True, off, pred, can_retry=False).use_prior
+    # Without a depth match its position is not measured in z: the prediction.
+    assert policy.decide(40.0, False, near, pred, can_retry=False).use_prior
+    # Agreement does not stop a retry, and a jump is still a jump.
+    assert policy.decide(40.0, True, near, pred, can_retry=True).action is Action.RETRY
+    wide = KeyframePolicy.of(NISlamConfig(lost_agree_m=0.5))
+    assert wide.decide(40.0, True, pred + 0.2, pred, can_retry=False).use_prior
+    # 0 (never) is the rule without it.
+    assert KeyframePolicy.of(NISlamConfig(lost_agree_m=0.0)).decide(40.0, True, near, pred, can_retry=False).use_prior
+    with pytest.raises(ConfigError, match="lost_agree_m"):
+        NISlamConfig(lost_agree_m=-0.01)
 
 
 def test_frames_placed_on_the_prior_do_not_lock_tracking_onto_it():

@@ -203,6 +203,10 @@ class NISlamConfig:
             prediction as its position instead of its own correlation estimate, and starts the
             next keyframe there (beyond the paper; off: only implausible jumps do): a lost
             frame's own estimate would otherwise carry its error into every later keyframe.
+        lost_agree_m: with ``lost_uses_prior``, a frame lost only for its PSR (its depth
+            matched) keeps its own estimate where that lies within this distance of the
+            prediction, metres (0: never; beyond the paper): the two agree, and a correct peak is
+            measured to millimetres where the prediction carries the velocity's error.
         center_on_prediction: centre each frame's orthographic image on the constant-velocity
             prediction of its translation from the keyframe instead of on its own optical axis
             (beyond the paper; ``track_step``'s ``center``): the correlation then measures only
@@ -238,8 +242,8 @@ class NISlamConfig:
             (``depth_translation``); and ``masked_kernel``, on here: the kernel distance over the
             pixels both images hold, so the sensor's holes, which move with the camera, do not
             pull each match towards no motion (README "masked-kernel-windows"). ``kcc.T_K`` and
-            ``kcc.T_M`` are read, with ``max_jump_m``
-            and ``lost_uses_prior``, by the keyframe policy (``policy.KeyframePolicy``).
+            ``kcc.T_M`` are read, with ``max_jump_m``,
+            ``lost_uses_prior`` and ``lost_agree_m``, by the keyframe policy (``policy.KeyframePolicy``).
         loop: loop closure settings.
         map_voxel: voxel size of ``map.ply``, metres.
         monitor_images_every: log the orthographic image of every n-th keyframe and the
@@ -259,6 +263,7 @@ class NISlamConfig:
     min_valid_points: int = 1000
     max_jump_m: float = 0.1
     lost_uses_prior: bool = True
+    lost_agree_m: float = 0.02
     center_on_prediction: bool = True
     grey_at_depth_time: bool = True
     undistort: bool = True
@@ -274,7 +279,8 @@ class NISlamConfig:
     LIMITS: ClassVar[dict[str, Limit]] = {
         "sim_gyro_noise": NON_NEGATIVE, "sim_bias_walk": NON_NEGATIVE, "sim_seed": Limit(),
         "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "pixel_stride": AT_LEAST_1,
-        "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True), "map_voxel": POSITIVE,
+        "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True),
+        "lost_agree_m": NON_NEGATIVE, "map_voxel": POSITIVE,
         "monitor_images_every": NON_NEGATIVE,
     }
 

@@ -11,11 +11,12 @@ prediction of its position:
   frame, if there is one since the current keyframe was made.
 - A frame still lost (or lost with no such frame) starts a keyframe of its own
   (``NEW_KEYFRAME``); its position is the prediction where it jumped, or, with
-  ``lost_uses_prior``, wherever a prediction exists.
+  ``lost_uses_prior``, wherever a prediction exists, unless the frame's depth matched and its
+  own position lies within ``lost_agree_m`` of the prediction.
 - A frame not lost keeps its keyframe (``TRACKED``) and is fused into it when PSR > ``T_M``.
 
 The thresholds are read from ``NISlamConfig`` (``kcc.T_K``, ``kcc.T_M``, ``max_jump_m``,
-``lost_uses_prior``) into ``KeyframePolicy``, the one place that applies them.
+``lost_uses_prior``, ``lost_agree_m``) into ``KeyframePolicy``, the one place that applies them.
 """
 
 from __future__ import annotations
@@ -64,17 +65,23 @@ class KeyframePolicy:
         max_jump_m: largest plausible distance from the predicted position, metres (``inf``: off),
             for a match at most ``T_M`` (one that would not be fused).
         lost_uses_prior: a frame lost even against a fresh keyframe takes the prediction as its position.
+        lost_agree_m: ... unless its depth matched and its own position lies within this of the
+            prediction, metres (0: never).
     """
 
     T_K: float
     T_M: float
     max_jump_m: float
     lost_uses_prior: bool
+    lost_agree_m: float = 0.0
 
     @classmethod
     def of(cls, cfg: NISlamConfig) -> KeyframePolicy:
         """The policy of ``cfg``."""
-        return cls(T_K=cfg.kcc.T_K, T_M=cfg.kcc.T_M, max_jump_m=cfg.max_jump_m, lost_uses_prior=cfg.lost_uses_prior)
+        return cls(
+            T_K=cfg.kcc.T_K, T_M=cfg.kcc.T_M, max_jump_m=cfg.max_jump_m,
+            lost_uses_prior=cfg.lost_uses_prior, lost_agree_m=cfg.lost_agree_m,
+        )
 
     def jumped(self, position: Tensor, predicted: Tensor | None) -> bool:
         """Whether ``position`` (3,) departs from ``predicted`` (3,) by more than ``max_jump_m``."""
@@ -106,4 +113,7 @@ class KeyframePolicy:
             return Verdict(Action.TRACKED, fuse=psr > self.T_M)
         if can_retry:
             return Verdict(Action.RETRY)
-        return Verdict(Action.NEW_KEYFRAME, use_prior=jump or (self.lost_uses_prior and predicted is not None))
+        prior = self.lost_uses_prior and predicted is not None
+        if prior and depth_ok and float((position - predicted).norm()) < self.lost_agree_m:
+            prior = False  # the match agrees with the prediction: its own estimate is the finer one
+        return Verdict(Action.NEW_KEYFRAME, use_prior=jump or prior)
