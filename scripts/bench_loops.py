@@ -38,7 +38,7 @@ from torchslam.config import config_from_dict
 from torchslam.data import Trajectory
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.eval import ate
-from torchslam.geometry import se3_from_Rt, se3_inverse, se3_log
+from torchslam.geometry import se3_from_Rt, se3_inverse, se3_log, so3_log
 from torchslam.systems import run_sequence
 from torchslam.systems.nislam import NISlam, NISlamConfig
 
@@ -159,6 +159,34 @@ class _Miscalibrated:
         return len(self._seq)
 
 
+class OracleRotationNISlam(PlantedNISlam):
+    """An experiment, not a capability: every verified loop takes the ground truth's relative
+    rotation, trusted to ``sigma_deg`` per axis, where NI-SLAM's loop edge carries the attitude
+    stream's rotation and no rotation information. What a visual rotation at loops could give at best.
+    """
+
+    def __init__(self, cfg: NISlamConfig, false_offsets: tuple[float, ...], groundtruth: Trajectory, sigma_deg: float):
+        super().__init__(cfg, false_offsets)
+        self.groundtruth = groundtruth
+        self.sigma_deg = sigma_deg
+        self.rotation_errors_deg: list[float] = []
+
+    def _verify(self, cand, kf, centred=False):
+        edge = super()._verify(cand, kf, centred)
+        if edge is None:
+            return None
+        R_gt = self.groundtruth.T_wc[[self.keyframes[cand].frame_index, kf.frame_index], :3, :3].to(torch.float64)
+        R = R_gt[0].T @ R_gt[1]
+        self.rotation_errors_deg.append(math.degrees(float(so3_log(edge.T_jk[:3, :3].T @ R).norm())))
+        return dataclasses.replace(edge, T_jk=se3_from_Rt(R, edge.T_jk[:3, 3]))
+
+    def _information(self, T_ij, variance, dt, depth, loop, scaled=True, extra=0.0):
+        info = super()._information(T_ij, variance, dt, depth, loop, scaled, extra)
+        if loop:
+            info[3:, 3:] = torch.eye(3, dtype=torch.float64) / math.radians(self.sigma_deg) ** 2
+        return info
+
+
 def _synthetic(seed: int, frames: int, noise: bool, period: float, trajectory: str = "loop"):
     return generate_sequence(SyntheticConfig(
         frames=frames, period=period, trajectory=trajectory, seed=seed, width=320, height=240, depth_noise=noise,
@@ -243,6 +271,7 @@ def nees(
 def long_runs(
     quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True),
     overrides: dict | None = None, seed: int = 0, frames: int | None = None, focal_scale: float = 1.0,
+    oracle_rotation_deg: float | None = None,
 ) -> list[dict]:
     """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule.
 
@@ -250,7 +279,8 @@ def long_runs(
     synthetic sequence's (``--long-seed``; 0 is a tuning seed, 100-104 are held out); ``frames``:
     its length (``--long-frames``; the same lap in fewer frames moves faster); ``focal_scale``:
     the focal lengths the system is given, as a multiple of the rendering's (``--long-focal-scale``;
-    1.03 makes a systematic odometry drift, as a miscalibrated camera does).
+    1.03 makes a systematic odometry drift, as a miscalibrated camera does); ``oracle_rotation_deg``:
+    run ``OracleRotationNISlam`` with that sigma (``--oracle-loop-rotation``; an experiment).
     """
     frames = frames or (150 if quick else 1500)
     # One lap that takes 90 % of the sequence: the last tenth revisits the start.
@@ -264,7 +294,11 @@ def long_runs(
             for rule, loop in RULES.items():
                 if rule not in rules:
                     continue
-                system = PlantedNISlam(config_from_dict(NISlamConfig, {"attitude": att, "loop": {**(overrides or {}), **loop}}), false_offsets)
+                cfg = config_from_dict(NISlamConfig, {"attitude": att, "loop": {**(overrides or {}), **loop}})
+                if oracle_rotation_deg is None:
+                    system = PlantedNISlam(cfg, false_offsets)
+                else:
+                    system = OracleRotationNISlam(cfg, false_offsets, seq.groundtruth, oracle_rotation_deg)
                 t0 = time.perf_counter()
                 res = run_sequence(system, seq)
                 wall = time.perf_counter() - t0
@@ -280,6 +314,9 @@ def long_runs(
                     "loop_tests": out.metrics["loop_tests"], "planted": planted,
                     "wall_s": wall,
                 }
+                if oracle_rotation_deg is not None:
+                    row["oracle_loop_rotation_deg"] = oracle_rotation_deg
+                    row["loop_attitude_errors_deg"] = system.rotation_errors_deg
                 rows.append(row)
                 print(f"  long noise={noise!s:5s} {att:11s} {rule:8s} ATE {100 * a.stats['rmse']:6.2f} cm  verified "
                       f"{loops['verified']} accepted {loops['accepted']} chi2-rejected {loops['rejected_by_chi2']} "
@@ -378,6 +415,8 @@ def main() -> None:
     ap.add_argument("--long-seed", type=int, default=0, help="seed of the long runs' synthetic sequence (100-104: held out)")
     ap.add_argument("--long-frames", type=int, default=None, help="frames of the long runs' lap (default 1500; fewer: faster motion)")
     ap.add_argument("--long-focal-scale", type=float, default=1.0, help="focal lengths given to the system / rendered ones (1.03: systematic drift)")
+    ap.add_argument("--oracle-loop-rotation", type=float, default=None, metavar="SIGMA_DEG",
+                    help="experiment: verified loops take the ground truth's relative rotation at this sigma (long runs)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the parts of earlier runs (each a JSON this script wrote) into --out and print their tables")
@@ -400,7 +439,8 @@ def main() -> None:
                               tuple(args.nees_splits.split(",")), tuple(args.nees_kinds.split(",")), tuple(args.nees_attitudes.split(",")))
     if args.only in (None, "long"):
         result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
-                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed, args.long_frames, args.long_focal_scale)
+                                   tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed, args.long_frames, args.long_focal_scale,
+                                   args.oracle_loop_rotation)
     if args.only in (None, "window"):
         result["window_size"] = args.window
         result["window"] = window(args.quick, args.window)
