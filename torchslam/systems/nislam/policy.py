@@ -73,7 +73,7 @@ class KeyframePolicy:
     T_M: float
     max_jump_m: float
     lost_uses_prior: bool
-    lost_agree_m: float = 0.0
+    lost_agree_m: float
 
     @classmethod
     def of(cls, cfg: NISlamConfig) -> KeyframePolicy:
@@ -82,10 +82,6 @@ class KeyframePolicy:
             T_K=cfg.kcc.T_K, T_M=cfg.kcc.T_M, max_jump_m=cfg.max_jump_m,
             lost_uses_prior=cfg.lost_uses_prior, lost_agree_m=cfg.lost_agree_m,
         )
-
-    def jumped(self, position: Tensor, predicted: Tensor | None) -> bool:
-        """Whether ``position`` (3,) departs from ``predicted`` (3,) by more than ``max_jump_m``."""
-        return predicted is not None and float((position - predicted).norm()) > self.max_jump_m
 
     def decide(
         self, psr: float, depth_ok: bool, position: Tensor, predicted: Tensor | None, can_retry: bool, check_jump: bool = True
@@ -108,12 +104,13 @@ class KeyframePolicy:
         """
         # A match confident enough to be fused is trusted over the prediction: the jump test is
         # for false peaks that score just above T_K while the true one fades.
-        jump = check_jump and psr <= self.T_M and self.jumped(position, predicted)
+        off = None if predicted is None else float((position - predicted).norm())  # metres from the prediction
+        jump = check_jump and psr <= self.T_M and off is not None and off > self.max_jump_m
         if not (psr < self.T_K or not depth_ok or jump):
             return Verdict(Action.TRACKED, fuse=psr > self.T_M)
         if can_retry:
             return Verdict(Action.RETRY)
-        prior = self.lost_uses_prior and predicted is not None
-        if prior and depth_ok and float((position - predicted).norm()) < self.lost_agree_m:
+        prior = self.lost_uses_prior and off is not None
+        if prior and depth_ok and off < self.lost_agree_m:
             prior = False  # the match agrees with the prediction: its own estimate is the finer one
         return Verdict(Action.NEW_KEYFRAME, use_prior=jump or prior)
