@@ -39,6 +39,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import math
@@ -62,6 +63,7 @@ __all__ = [
     "ATTITUDE_SOURCES",
     "AttitudeSource",
     "AttitudeStream",
+    "TiltInputs",
     "ahrs_attitude",
     "attitude_errors",
     "groundtruth_attitude",
@@ -89,11 +91,15 @@ class AttitudeStream:
         timestamps: (N,) float64 seconds, strictly increasing.
         R_wc: (N, 3, 3) float64 camera-to-world rotations.
         source: the provider, one of ``ATTITUDE_SOURCES`` ("groundtruth", "simulated", "imu").
+        tilt: what the attitude filter's tilt correction was computed from (``ahrs_attitude``),
+            so that it can be run again with the accelerometer corrected
+            (``AccelerationCompensation``); None for streams no filter made (ground truth).
     """
 
     timestamps: Tensor
     R_wc: Tensor
     source: str
+    tilt: "TiltInputs | None" = None
 
     def __post_init__(self) -> None:
         dims: dict[str, int] = {}
@@ -130,6 +136,31 @@ class AttitudeStream:
     def _quats(self) -> Tensor:
         """(N, 4) unit xyzw quaternions of ``R_wc``."""
         return rotmat_to_quat_xyzw(self.R_wc.detach())
+
+
+@dataclass(frozen=True)
+class TiltInputs:
+    """The inputs and the result of ``ahrs_attitude``'s tilt correction (module docstring, step 2).
+
+    Attributes:
+        timestamps: (M,) float64 IMU sample times, seconds (the stream's).
+        specific_force: (M, 3) float64 accelerometer samples mapped into the filter's world
+            (z up) by the gyro-only attitude ``R0 G_i``, not normalised.
+        alpha: (M,) float64 low-pass gain of each sample before the accelerometer gate.
+        up: (M, 3) float64 the low-pass output ``y_i`` the stream's correction came from.
+        gravity: magnitude of gravity, m/s^2.
+        accel_gate: the gate, m/s^2: a sample with ``| |f| - gravity | >`` this does not correct.
+        to_filter: (3, 3) float64 rotation from the stream's world into the filter's (identity
+            where the stream's world is z up already).
+    """
+
+    timestamps: Tensor
+    specific_force: Tensor
+    alpha: Tensor
+    up: Tensor
+    gravity: float
+    accel_gate: float
+    to_filter: Tensor
 
 
 def groundtruth_attitude(trajectory) -> AttitudeStream:
@@ -310,21 +341,26 @@ def ahrs_attitude(
         check_shape(R0, "3 3", "R0")
         q0 = rotmat_to_quat_xyzw(R0.to(torch.float64))
     q_gyro = _integrate_quat(t, gyro, q0) if m > 1 else q0[None]  # (M, 4): R0 G_i
+    tilt = None
     if math.isinf(time_constant):
         q_wb = q_gyro
     else:
         dt = torch.cat([torch.zeros_like(t[:1]), torch.diff(t)])
-        alpha = dt / (time_constant + dt)
-        alpha = torch.where((f_norm - gravity).abs() <= accel_gate, alpha, torch.zeros_like(alpha))
+        alpha_all = dt / (time_constant + dt)
+        alpha = torch.where((f_norm - gravity).abs() <= accel_gate, alpha_all, torch.zeros_like(alpha_all))
         w = _qrotate(q_gyro, f_dir)  # (M, 3) up direction seen through the gyro-only attitude
         y = _linear_recurrence(1 - alpha, alpha[:, None] * w, e_up)
         u = y / y.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         q_wb = _qmul(_swing_to(u, e_up), q_gyro)
+        tilt = TiltInputs(
+            timestamps=t, specific_force=_qrotate(q_gyro, accel.to(torch.float64)), alpha=alpha_all, up=y,
+            gravity=float(gravity), accel_gate=float(accel_gate), to_filter=torch.eye(3, dtype=torch.float64, device=t.device),
+        )
     R_wb = quat_xyzw_to_rotmat(q_wb)
     if R_bc is not None:
         check_shape(R_bc, "3 3", "R_bc")
         R_wb = R_wb @ R_bc.to(torch.float64)
-    return AttitudeStream(t, R_wb, source)
+    return AttitudeStream(t, R_wb, source, tilt)
 
 
 def _gravity_frame(gravity_w: Tensor) -> Tensor:
@@ -396,7 +432,8 @@ def simulated_attitude(
     stream = ahrs_attitude(
         sim.imu, kin.R_wb[0], time_constant=time_constant, accel_gate=accel_gate, gravity=float(g_w.norm())
     )
-    return AttitudeStream(stream.timestamps, Q.T @ stream.R_wc, "simulated")
+    tilt = None if stream.tilt is None else dataclasses.replace(stream.tilt, to_filter=Q)
+    return AttitudeStream(stream.timestamps, Q.T @ stream.R_wc, "simulated", tilt)
 
 
 def attitude_errors(R_est: Tensor, R_true: Tensor, up: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -190,6 +190,14 @@ class NISlamConfig:
             ``t + attitude_time_offset``, seconds: the two clocks' offset, which
             ``torchslam calibrate-time`` estimates from the images and the stream's rotations
             (``torchslam calibrate-time``). Trajectories keep the image stamps.
+        accel_compensation: with an attitude from the attitude filter (``imu``, ``simulated``),
+            run its tilt correction again as frames are tracked, the accelerometer corrected by
+            the camera's acceleration fitted to the tracked positions
+            (``imu.AccelerationCompensation``; beyond the paper): the body's own acceleration
+            otherwise leaks into the gravity direction and tilts the attitude by up to a degree.
+            No effect with ground-truth attitude.
+        accel_window: half width ``h`` of that fit, frames: a quadratic through the positions of
+            ``2 h + 1`` frames centred on each (the correction runs ``h + 1`` frames behind).
         pixel_stride: use every n-th pixel in x and y of the depth image (1 = all; 2 quarters
             the projection cost).
         min_valid_points: frames with fewer valid depth points are not tracked.
@@ -259,6 +267,8 @@ class NISlamConfig:
     sim_seed: int = 0
     attitude_max_gap: float = 0.1
     attitude_time_offset: float = 0.0
+    accel_compensation: bool = True
+    accel_window: int = 5
     pixel_stride: int = 1
     min_valid_points: int = 1000
     max_jump_m: float = 0.1
@@ -278,7 +288,8 @@ class NISlamConfig:
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "sim_gyro_noise": NON_NEGATIVE, "sim_bias_walk": NON_NEGATIVE, "sim_seed": Limit(),
-        "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "pixel_stride": AT_LEAST_1,
+        "attitude_max_gap": POSITIVE, "attitude_time_offset": Limit(), "accel_window": Limit(ge=2),
+        "pixel_stride": AT_LEAST_1,
         "min_valid_points": AT_LEAST_1, "max_jump_m": Limit(gt=0, allow_inf=True),
         "lost_agree_m": NON_NEGATIVE, "map_voxel": POSITIVE,
         "monitor_images_every": NON_NEGATIVE,

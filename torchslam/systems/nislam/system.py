@@ -63,6 +63,7 @@ from ...data.frame import Frame, Sequence
 from ...data.trajectory import Trajectory
 from ...features import ORBConfig, extract_orb
 from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
+from ...imu.compensation import AccelerationCompensation
 from ...kcc import (
     KCCFilter,
     KeyframeMap,
@@ -179,6 +180,12 @@ class NISlam:
             lens_key=(cam, s) if has_lens else None,
         )
         self.attitude = attitude_stream(sequence, cfg)
+        # The filter's tilt correction run again with the tracked acceleration removed (imu and
+        # simulated attitude; ground truth has no filter to run again).
+        self.accel = (
+            AccelerationCompensation(self.attitude.tilt, cfg.accel_window)
+            if cfg.accel_compensation and self.attitude.tilt is not None else None
+        )
         self.R_corr = torch.eye(3, dtype=torch.float64)
         self.keyframes: list[_Keyframe] = []
         # Prior tag "velocity": the frame's position is the constant-velocity prediction.
@@ -312,6 +319,11 @@ class NISlam:
         if cloud.n_valid < self.cfg.min_valid_points:
             self.untracked["too_few_points"] += 1
             return None
+        if self.accel is not None:
+            # The same world-frame correction at both instants: their relative rotation (the grey
+            # re-sampling's) is unchanged.
+            C = self.accel.correction(float(input.times[0]) + self.cfg.attitude_time_offset)
+            input = replace(input, R_att=C.to(input.R_att.dtype) @ input.R_att)
         R_wi = self.R_corr @ input.R_att[0]
         if not self.keyframes:
             first = _Placed(input, cloud, se3_from_Rt(R_wi, torch.zeros(3, dtype=torch.float64)), None)
@@ -450,6 +462,8 @@ class NISlam:
         """Log the frame at world pose ``T_wi`` (4, 4), relative to the current keyframe."""
         kf = self.keyframes[-1]
         self.frames.record(frame, len(self.keyframes) - 1, se3_inverse(kf.T_wk) @ T_wi, "velocity" if prior else None)
+        if self.accel is not None:
+            self.accel.observe(frame.geometry_time + self.cfg.attitude_time_offset, T_wi[:3, 3])
 
     def _ensure_filter(self, kf: _Keyframe) -> KCCFilter:
         if kf.filter is None:
@@ -773,6 +787,8 @@ class NISlam:
         v = self._velocity()
         R_before = self.keyframes[-1].T_wk[:3, :3]
         self._history_start = len(self.frames)
+        if self.accel is not None:
+            self.accel.restart()  # the keyframes moved: positions before and after do not mix
         for kf, T in zip(self.keyframes[lo:], res.T_wc):
             kf.T_wk = T
         self._carried_velocity = None if v is None else (self.keyframes[-1].T_wk[:3, :3] @ R_before.T) @ v
@@ -846,6 +862,10 @@ class NISlam:
         return {
             "attitude_source": self.attitude.source,
             "attitude_time_offset_s": self.cfg.attitude_time_offset,
+            # null: off, or an attitude no filter made (ground truth)
+            "accel_compensation": None if self.accel is None else {
+                "imu_samples": self.accel.compensated_samples, "max_correction_deg": self.accel.max_correction_deg,
+            },
             "psr": stats,
             "fused_frames": self.fused,
             "motion_prior_frames": self.motion_prior_frames,
