@@ -323,7 +323,7 @@ class NISlam:
             # The same world-frame correction at both instants: their relative rotation (the grey
             # re-sampling's) is unchanged.
             C = self.accel.correction(float(input.times[0]) + self.cfg.attitude_time_offset)
-            input = replace(input, R_att=C.to(input.R_att.dtype) @ input.R_att)
+            input = replace(input, R_att=C.to(input.R_att.device, input.R_att.dtype) @ input.R_att)
         R_wi = self.R_corr @ input.R_att[0]
         if not self.keyframes:
             first = _Placed(input, cloud, se3_from_Rt(R_wi, torch.zeros(3, dtype=torch.float64)), None)
