@@ -62,7 +62,7 @@ def tilt_rms(name: str, draws: int, half_window: int) -> list[dict]:
     for draw in range(draws):
         stream = simulated_attitude(gt, gravity_w=g, seed=draw)
         R, ok = stream.at(times)
-        comp = AccelerationCompensation(stream.tilt, half_window)
+        comp = AccelerationCompensation(stream, half_window)
         R_comp = []
         for k in range(len(times)):
             R_comp.append(comp.correction(float(times[k])) @ R[k])

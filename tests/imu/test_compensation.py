@@ -13,7 +13,8 @@ from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.synthetic.sequence import synthetic_kinematics
 from torchslam.errors import ConfigError
 from torchslam.imu import ImuNoise, ahrs_attitude, attitude_errors, groundtruth_attitude, simulated_attitude
-from torchslam.imu.compensation import AccelerationCompensation, _low_pass, _swing
+from torchslam.imu.attitude import _swing_to, quat_xyzw_to_rotmat
+from torchslam.imu.compensation import AccelerationCompensation
 
 F64 = torch.float64
 
@@ -29,7 +30,7 @@ def _sequence(noise: ImuNoise | None = None):
 def _compensated(stream, times: torch.Tensor, positions: torch.Tensor, half_window: int = 5) -> torch.Tensor:
     """(N, 3, 3) attitudes at ``times`` with the compensation fed ``positions`` frame by frame,
     each frame's correction taken before its own position is observed (as NI-SLAM does)."""
-    comp = AccelerationCompensation(stream.tilt, half_window)
+    comp = AccelerationCompensation(stream, half_window)
     R, ok = stream.at(times)
     assert bool(ok.all())
     out = []
@@ -37,17 +38,6 @@ def _compensated(stream, times: torch.Tensor, positions: torch.Tensor, half_wind
         out.append(comp.correction(float(times[k])) @ R[k])
         comp.observe(float(times[k]), positions[k])
     return torch.stack(out)
-
-
-def test_low_pass_closed_form_equals_the_recurrence():
-    rng = np.random.default_rng(0)
-    w, alpha, y0 = rng.normal(size=(9, 3)), rng.uniform(0, 0.01, size=9), rng.normal(size=3)
-    alpha[3] = 0.0  # a gated sample
-    y, expected = y0.copy(), []
-    for a, wi in zip(alpha, w):
-        y = (1 - a) * y + a * wi
-        expected.append(y)
-    np.testing.assert_allclose(_low_pass(y0, w, alpha), np.stack(expected), rtol=0, atol=1e-14)
 
 
 def test_filter_streams_keep_their_tilt_inputs_and_ground_truth_has_none():
@@ -59,10 +49,12 @@ def test_filter_streams_keep_their_tilt_inputs_and_ground_truth_has_none():
     R0 = seq.attitude.R_wc[0]
     gyro_only = ahrs_attitude(seq.imu, R0, time_constant=math.inf).R_wc
     for i in (1, len(seq.imu) // 2, len(seq.imu) - 1):
-        u = (tilt.up[i] / tilt.up[i].norm()).numpy()
-        expected = torch.from_numpy(_swing(u)) @ gyro_only[i]
+        u = tilt.up[i] / tilt.up[i].norm()
+        expected = quat_xyzw_to_rotmat(_swing_to(u[None], torch.tensor([0.0, 0.0, 1.0], dtype=F64)))[0] @ gyro_only[i]
         assert torch.allclose(expected, seq.attitude.R_wc[i], atol=1e-9)
     assert groundtruth_attitude(seq.groundtruth).tilt is None
+    with pytest.raises(ConfigError, match="no attitude filter"):
+        AccelerationCompensation(groundtruth_attitude(seq.groundtruth))
     assert ahrs_attitude(seq.imu, time_constant=math.inf).tilt is None  # no tilt correction to redo
 
 
@@ -74,14 +66,14 @@ def test_zero_acceleration_reproduces_the_stream():
     t = seq.groundtruth.timestamps.to(F64)
     p = (t - t[0])[:, None] * torch.tensor([0.3, -0.1, 0.2], dtype=F64)
     R, _ = seq.attitude.at(t)
-    comp = AccelerationCompensation(seq.attitude.tilt, 5)
+    comp = AccelerationCompensation(seq.attitude, 5)
     for k in range(len(t)):
         if k < 11:
             assert float((comp.correction(float(t[k])) @ R[k] - R[k]).abs().max()) < 1e-10
         comp.observe(float(t[k]), p[k])
     up = seq.attitude.tilt.up[comp._done].numpy()
     assert comp._done > 0 and comp.compensated_samples > 0
-    np.testing.assert_allclose(comp._y, up, rtol=0, atol=1e-9 * np.linalg.norm(up))
+    np.testing.assert_allclose(comp._y.numpy(), up, rtol=0, atol=1e-9 * np.linalg.norm(up))
 
 
 def test_true_positions_remove_the_tilt_the_acceleration_caused():
@@ -131,7 +123,7 @@ def test_a_restart_holds_the_correction_and_a_step_back_in_time_restarts():
     gt = seq.groundtruth
     t = gt.timestamps.to(F64)
     p = gt.T_wc[:, :3, 3].to(F64)
-    comp = AccelerationCompensation(seq.attitude.tilt, 2)
+    comp = AccelerationCompensation(seq.attitude, 2)
     for k in range(20):
         comp.observe(float(t[k]), p[k])
     done = comp.compensated_samples
@@ -149,7 +141,7 @@ def test_a_restart_holds_the_correction_and_a_step_back_in_time_restarts():
 def test_bad_half_window_is_refused():
     _, seq = _sequence()
     with pytest.raises(ConfigError, match="half_window"):
-        AccelerationCompensation(seq.attitude.tilt, 1)
+        AccelerationCompensation(seq.attitude, 1)
 
 
 def test_synthetic_kinematics_accelerations_are_what_the_fit_sees():

@@ -90,9 +90,8 @@ def test_nislam_attitude_time_offset_undoes_a_shifted_stream():
         return config_from_dict(NISlamConfig, {"attitude": "imu", "attitude_time_offset": offset, "loop": {"enabled": False}})
 
     base = run_sequence(NISlam(cfg()), seq).output
-    # The filter's inputs move with the stream (the acceleration compensation reads them).
-    tilt = dataclasses.replace(s.tilt, timestamps=s.tilt.timestamps + 0.02)
-    shifted = EditedSequence(seq, attitude=AttitudeStream(s.timestamps + 0.02, s.R_wc, s.source, tilt))
+    # The whole stream moves, the filter's inputs too (the acceleration compensation reads them).
+    shifted = EditedSequence(seq, attitude=dataclasses.replace(s, timestamps=s.timestamps + 0.02))
     fixed = run_sequence(NISlam(cfg(0.02)), shifted).output
     wrong = run_sequence(NISlam(cfg()), shifted).output
     assert torch.equal(fixed.timestamps, base.timestamps)  # trajectories keep the image stamps

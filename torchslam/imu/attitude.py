@@ -108,6 +108,10 @@ class AttitudeStream:
         if self.timestamps.dtype != torch.float64 or self.R_wc.dtype != torch.float64:
             raise ShapeError(f"timestamps, R_wc: expected float64, got {self.timestamps.dtype} and {self.R_wc.dtype}")
         check_increasing(self.timestamps, "timestamps")
+        if self.tilt is not None:
+            check_shape(self.tilt.specific_force, "N 3", "tilt.specific_force", dims)
+            check_shape(self.tilt.alpha, "N", "tilt.alpha", dims)
+            check_shape(self.tilt.up, "N 3", "tilt.up", dims)
         # Kept as the plain name (it is written to JSON and YAML outputs); the enum decides what is valid.
         object.__setattr__(self, "source", parse_choice(AttitudeSource, self.source, "source").value)
 
@@ -140,10 +144,10 @@ class AttitudeStream:
 
 @dataclass(frozen=True)
 class TiltInputs:
-    """The inputs and the result of ``ahrs_attitude``'s tilt correction (module docstring, step 2).
+    """The inputs and the result of ``ahrs_attitude``'s tilt correction (module docstring, step 2),
+    one row per sample of the stream that holds them (``AttitudeStream.tilt``, at its timestamps).
 
     Attributes:
-        timestamps: (M,) float64 IMU sample times, seconds (the stream's).
         specific_force: (M, 3) float64 accelerometer samples mapped into the filter's world
             (z up) by the gyro-only attitude ``R0 G_i``, not normalised.
         alpha: (M,) float64 low-pass gain of each sample before the accelerometer gate.
@@ -154,7 +158,6 @@ class TiltInputs:
             where the stream's world is z up already).
     """
 
-    timestamps: Tensor
     specific_force: Tensor
     alpha: Tensor
     up: Tensor
@@ -353,7 +356,7 @@ def ahrs_attitude(
         u = y / y.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         q_wb = _qmul(_swing_to(u, e_up), q_gyro)
         tilt = TiltInputs(
-            timestamps=t, specific_force=_qrotate(q_gyro, accel.to(torch.float64)), alpha=alpha_all, up=y,
+            specific_force=_qrotate(q_gyro, accel.to(torch.float64)), alpha=alpha_all, up=y,
             gravity=float(gravity), accel_gate=float(accel_gate), to_filter=torch.eye(3, dtype=torch.float64, device=t.device),
         )
     R_wb = quat_xyzw_to_rotmat(q_wb)

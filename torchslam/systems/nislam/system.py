@@ -183,7 +183,7 @@ class NISlam:
         # The filter's tilt correction run again with the tracked acceleration removed (imu and
         # simulated attitude; ground truth has no filter to run again).
         self.accel = (
-            AccelerationCompensation(self.attitude.tilt, cfg.accel_window)
+            AccelerationCompensation(self.attitude, cfg.accel_window)
             if cfg.accel_compensation and self.attitude.tilt is not None else None
         )
         self.R_corr = torch.eye(3, dtype=torch.float64)
