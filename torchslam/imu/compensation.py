@@ -103,10 +103,12 @@ class AccelerationCompensation:
         if len(self._times) > n:
             del self._times[0], self._positions[0]
         tc = self._times[self.h]
-        tau = torch.tensor(self._times, dtype=F64) - tc
-        A = torch.stack([torch.ones_like(tau), tau, tau * tau], dim=1)
-        coef = torch.linalg.lstsq(A, torch.stack(self._positions)).solution
-        self._advance(tc, self.Q @ (2.0 * coef[2]))
+        tau = np.asarray(self._times) - tc
+        A = np.stack([np.ones_like(tau), tau, tau * tau], axis=1)
+        # NumPy's least squares: torch's (MKL) gave run-to-run bit differences, which the
+        # trajectory-equality tests of frames prepared ahead caught.
+        coef, *_ = np.linalg.lstsq(A, torch.stack(self._positions).numpy(), rcond=None)
+        self._advance(tc, self.Q @ torch.from_numpy(2.0 * coef[2]))
 
     def _run(self, lo: int, stop: int, accel: Tensor) -> Tensor:
         """The low-pass state after samples ``lo .. stop - 1`` from the current state, the
