@@ -68,7 +68,7 @@ class PlantedNISlam(NISlam):
         self.false_offsets = false_offsets
         self.planted: list[dict] = []
 
-    def _try_loop(self, j_old, k_new, T_jk, variance, window=None):
+    def _try_loop(self, j_old, k_new, T_jk, variance, window=None, rotation_cov=None):
         if window is None and len(self.keyframes) > 2:
             direction = torch.tensor([1.0, 1.0, 0.0], dtype=T_jk.dtype) / math.sqrt(2)
             trials = []
@@ -82,14 +82,14 @@ class PlantedNISlam(NISlam):
             for kind, j, T in trials:
                 saved = ([list(x) for x in (self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_test_info, self.edges_loop)],
                          [kf.T_wk for kf in self.keyframes], self.R_corr, self._history_start, dict(self.loops))
-                accepted = super()._try_loop(j, k_new, T, variance)
+                accepted = super()._try_loop(j, k_new, T, variance, rotation_cov=rotation_cov)
                 test = self.loop_tests.pop()
                 self.planted.append({"kind": kind, "accepted": accepted, "chi2_increase": test["chi2_increase"]})
                 lists, poses, self.R_corr, self._history_start, self.loops = saved
                 self.edges_i, self.edges_j, self.edges_T, self.edges_info, self.edges_test_info, self.edges_loop = lists
                 for kf, T_wk in zip(self.keyframes, poses):
                     kf.T_wk = T_wk
-        return super()._try_loop(j_old, k_new, T_jk, variance, window)
+        return super()._try_loop(j_old, k_new, T_jk, variance, window, rotation_cov)
 
 
 def odometry_errors(system: NISlam, groundtruth: Trajectory) -> dict[str, torch.Tensor]:
@@ -271,7 +271,7 @@ def nees(
 def long_runs(
     quick: bool, false_offsets: tuple[float, ...], attitudes: list[str], rules: list[str], noises: tuple[bool, ...] = (False, True),
     overrides: dict | None = None, seed: int = 0, frames: int | None = None, focal_scale: float = 1.0,
-    oracle_rotation_deg: float | None = None,
+    oracle_rotation_deg: float | None = None, sim_seed: int = 0,
 ) -> list[dict]:
     """Long loop sequences: loops and ATE with the chi-square test and with the old bend rule.
 
@@ -280,7 +280,8 @@ def long_runs(
     its length (``--long-frames``; the same lap in fewer frames moves faster); ``focal_scale``:
     the focal lengths the system is given, as a multiple of the rendering's (``--long-focal-scale``;
     1.03 makes a systematic odometry drift, as a miscalibrated camera does); ``oracle_rotation_deg``:
-    run ``OracleRotationNISlam`` with that sigma (``--oracle-loop-rotation``; an experiment).
+    run ``OracleRotationNISlam`` with that sigma (``--oracle-loop-rotation``; an experiment);
+    ``sim_seed``: the simulated IMU's noise draw (``--sim-seed``).
     """
     frames = frames or (150 if quick else 1500)
     # One lap that takes 90 % of the sequence: the last tenth revisits the start.
@@ -294,7 +295,7 @@ def long_runs(
             for rule, loop in RULES.items():
                 if rule not in rules:
                     continue
-                cfg = config_from_dict(NISlamConfig, {"attitude": att, "loop": {**(overrides or {}), **loop}})
+                cfg = config_from_dict(NISlamConfig, {"attitude": att, "sim_seed": sim_seed, "loop": {**(overrides or {}), **loop}})
                 if oracle_rotation_deg is None:
                     system = PlantedNISlam(cfg, false_offsets)
                 else:
@@ -312,6 +313,8 @@ def long_runs(
                     "planted_false": len(planted), "planted_false_accepted": sum(p["accepted"] for p in planted),
                     "planted_accepted_by_kind": {k: sum(p["accepted"] for p in planted if p["kind"] == k) for k in sorted({p["kind"] for p in planted})},
                     "loop_tests": out.metrics["loop_tests"], "planted": planted,
+                    "sim_seed": sim_seed, "loop_visual_rotation": out.metrics.get("loop_visual_rotation"),
+                    "loop_edge_rotation_errors_deg": _loop_edge_rotation_errors(system, seq.groundtruth),
                     "wall_s": wall,
                 }
                 if oracle_rotation_deg is not None:
@@ -321,8 +324,21 @@ def long_runs(
                 print(f"  long noise={noise!s:5s} {att:11s} {rule:8s} ATE {100 * a.stats['rmse']:6.2f} cm  verified "
                       f"{loops['verified']} accepted {loops['accepted']} chi2-rejected {loops['rejected_by_chi2']} "
                       f"bend-rejected {loops['rejected_by_odometry']}  planted false accepted "
-                      f"{row['planted_false_accepted']}/{row['planted_false']} {row['planted_accepted_by_kind']}", flush=True)
+                      f"{row['planted_false_accepted']}/{row['planted_false']} {row['planted_accepted_by_kind']}  loop edge rotation errors "
+                      f"{[round(e, 3) for e in row['loop_edge_rotation_errors_deg']]} deg", flush=True)
     return rows
+
+
+def _loop_edge_rotation_errors(system: NISlam, groundtruth: Trajectory) -> list[float]:
+    """Per accepted loop edge, the angle between its rotation and the ground truth's relative rotation, degrees."""
+    times = torch.tensor([kf.timestamp for kf in system.keyframes], dtype=torch.float64)
+    T_gt, ok = groundtruth.interpolate(times)
+    out = []
+    for i, j, T, loop in zip(system.edges_i, system.edges_j, system.edges_T, system.edges_loop):
+        if loop and bool(ok[i]) and bool(ok[j]):
+            R_true = T_gt[i, :3, :3].T @ T_gt[j, :3, :3]
+            out.append(math.degrees(float(so3_log(T[:3, :3].T @ R_true).norm())))
+    return out
 
 
 def window(quick: bool, size: int) -> list[dict]:
@@ -417,6 +433,7 @@ def main() -> None:
     ap.add_argument("--long-focal-scale", type=float, default=1.0, help="focal lengths given to the system / rendered ones (1.03: systematic drift)")
     ap.add_argument("--oracle-loop-rotation", type=float, default=None, metavar="SIGMA_DEG",
                     help="experiment: verified loops take the ground truth's relative rotation at this sigma (long runs)")
+    ap.add_argument("--sim-seed", type=int, default=0, help="the simulated IMU's noise draw (long runs)")
     ap.add_argument("--out", default=str(RESULTS / "bench_loops.json"), help="JSON output")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="combine the parts of earlier runs (each a JSON this script wrote) into --out and print their tables")
@@ -440,7 +457,7 @@ def main() -> None:
     if args.only in (None, "long"):
         result["long"] = long_runs(args.quick, tuple(float(x) for x in args.false_offsets.split(",")), args.attitudes.split(","), args.rules.split(","),
                                    tuple({"off": False, "on": True}[x] for x in args.depth_noise.split(",")), json.loads(args.loop), args.long_seed, args.long_frames, args.long_focal_scale,
-                                   args.oracle_loop_rotation)
+                                   args.oracle_loop_rotation, args.sim_seed)
     if args.only in (None, "window"):
         result["window_size"] = args.window
         result["window"] = window(args.quick, args.window)

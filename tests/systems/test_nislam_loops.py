@@ -1,6 +1,7 @@
 """NI-SLAM's loop acceptance: planted true and false loops, at the pose graph and end to end."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -8,7 +9,7 @@ import torch
 from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
-from torchslam.geometry import se3_exp, se3_inverse
+from torchslam.geometry import se3_exp, se3_inverse, so3_exp, so3_log
 from torchslam.systems.nislam import AcceptanceCovariance, LoopConfig, NISlam, NISlamConfig
 from torchslam.systems.nislam.system import _Keyframe
 
@@ -119,11 +120,11 @@ class _Planting(NISlam):
 
     planted: list[bool]
 
-    def _try_loop(self, j_old, k_new, T_jk, variance, window=None):
+    def _try_loop(self, j_old, k_new, T_jk, variance, window=None, rotation_cov=None):
         self.planted = getattr(self, "planted", [])
         if window is None:
-            self.planted.append(super()._try_loop((j_old + k_new) // 2, k_new, T_jk, variance))
-        return super()._try_loop(j_old, k_new, T_jk, variance, window)
+            self.planted.append(super()._try_loop((j_old + k_new) // 2, k_new, T_jk, variance, rotation_cov=rotation_cov))
+        return super()._try_loop(j_old, k_new, T_jk, variance, window, rotation_cov)
 
 
 def test_synthetic_revisit_accepts_the_true_loop_rejects_the_planted_one():
@@ -284,3 +285,66 @@ def test_acceptance_covariance_keys_are_validated():
         LoopConfig(min_jitter_frames=2)
     with pytest.raises(ConfigError, match="jitter_variance_scale"):
         LoopConfig(jitter_variance_scale=0.0)
+
+
+class _TurnedLoops(NISlam):
+    """NI-SLAM whose verified loops carry a planted heading error (the gyro's drift at a revisit)."""
+
+    TURN_DEG = 0.8
+
+    def _verify(self, cand, kf, centred=False):
+        edge = super()._verify(cand, kf, centred)
+        if edge is None:
+            return None
+        T = edge.T_jk.clone()
+        turn = torch.tensor([0.0, math.radians(self.TURN_DEG), 0.0], dtype=torch.float64)  # about the camera's vertical
+        T[:3, :3] = so3_exp(turn) @ T[:3, :3]
+        return replace(edge, T_jk=T)
+
+
+def _loop_edge_rotation_errors(system, seq):
+    T_gt = seq.groundtruth.T_wc[[kf.frame_index for kf in system.keyframes]].to(torch.float64)
+    errs = []
+    for i, j, T, loop in zip(system.edges_i, system.edges_j, system.edges_T, system.edges_loop):
+        if loop:
+            R_true = T_gt[i, :3, :3].T @ T_gt[j, :3, :3]
+            errs.append(math.degrees(float(so3_log(T[:3, :3].T @ R_true).norm())))
+    return errs
+
+
+def test_visual_rotation_measures_a_loops_heading():
+    # A planted 0.8 deg heading error on every verified loop: the attitude's rotation keeps it;
+    # the refinement over the old keyframe's map measures the loop's rotation instead.
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    errors, metrics = {}, {}
+    for visual in (False, True):
+        system = _TurnedLoops(config_from_dict(NISlamConfig, {"attitude": "simulated", "loop": {"visual_rotation": visual}}))
+        result, _ = run_with_ate(system, seq)
+        metrics[visual] = result.output.metrics["loop_visual_rotation"]
+        errors[visual] = _loop_edge_rotation_errors(system, seq)
+    assert metrics[False] is None
+    assert metrics[True]["refined"] >= 1 and metrics[True]["max_change_deg"] > 0.5, metrics[True]
+    assert errors[False] and min(errors[False]) > 0.4, errors  # the planted turn and the attitude's own error
+    assert errors[True] and max(errors[True]) < 0.3, errors
+
+
+def test_visual_rotation_never_refines_ground_truth_attitude():
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    system = _TurnedLoops(config_from_dict(NISlamConfig, {"attitude": "groundtruth"}))
+    result, _ = run_with_ate(system, seq)
+    assert result.output.metrics["loop_visual_rotation"] is None
+    assert result.output.metrics["loops"]["verified"] >= 1
+
+
+def test_measured_loop_rotation_enters_the_information():
+    system, T_gt = _planted_chain("simulated", {})
+    n = len(T_gt)
+    T_loop = se3_inverse(T_gt[0]) @ T_gt[n - 1]
+    var = torch.tensor([1e-4, 1e-4, 4e-5], dtype=torch.float64)
+    plain = system._information(T_loop, var, 20.0, 2.0, loop=True)
+    cov = torch.diag(torch.tensor([1e-6, 2e-6, 3e-6], dtype=torch.float64))
+    measured = system._information(T_loop, var, 20.0, 2.0, loop=True, rotation_cov=cov)
+    assert torch.count_nonzero(plain[3:, 3:]) == 0
+    torch.testing.assert_close(measured[3:, 3:], torch.linalg.inv(cov))
+    # The attitude's share of the x, y variance now comes from the measured rotation: smaller.
+    assert bool((measured[:2, :2].diagonal() > plain[:2, :2].diagonal()).all())

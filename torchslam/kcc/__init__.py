@@ -50,6 +50,7 @@ from .ortho import (
     sample_grey_warped,
 )
 from .peak import Peak, peak_to_sidelobe, shift_variance, soft_argmax
+from .refine import MapRefineConfig, MapRefinement, refine_against_map
 from .window import Window, apply_window, frame_taper, kcc_window
 
 __all__ = [
@@ -63,6 +64,8 @@ __all__ = [
     "KCCPrediction",
     "KernelCorrelator",
     "KeyframeMap",
+    "MapRefineConfig",
+    "MapRefinement",
     "OrthoImages",
     "PACKAGED_WEIGHTS",
     "Peak",
@@ -92,6 +95,7 @@ __all__ = [
     "load_feature_net",
     "orthographic_project",
     "peak_to_sidelobe",
+    "refine_against_map",
     "rgbd_to_points",
     "sample_grey",
     "sample_grey_rotated",

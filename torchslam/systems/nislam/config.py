@@ -126,6 +126,15 @@ class LoopConfig:
         local_window: when a keyframe is made, also register it (as a loop candidate is verified)
             against this many keyframes before its predecessor, add the edges that pass the same
             chi-square test on the window's graph and optimise the window; 0 turns it off.
+        visual_rotation: with an inertial attitude (``imu``, ``simulated``), a verified loop's
+            relative pose is refined over the old keyframe's fused map, rotation included
+            (``kcc.refine_against_map``: depth and grey Gauss-Newton from the correlator's
+            answer), and its edge carries that rotation with its covariance, so the graph can
+            undo the heading the gyro drifted by (beyond the paper, which says the inertial
+            rotation sometimes needs visual correction). A refinement that does not converge
+            leaves the edge as verified. Ground-truth attitude is never refined.
+        visual_rotation_sigma_deg: standard deviation per axis added to the refinement's own
+            rotation covariance (which treats the points' errors as independent), degrees.
     """
 
     enabled: bool = True
@@ -152,6 +161,8 @@ class LoopConfig:
     proximity_candidates: int = 1
     proximity_radius: float = 0.5
     local_window: int = 0
+    visual_rotation: bool = True
+    visual_rotation_sigma_deg: float = 0.1
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "min_separation": AT_LEAST_1, "top_k": AT_LEAST_1, "min_score": NON_NEGATIVE,
@@ -161,6 +172,7 @@ class LoopConfig:
         "translation_variance_scale": POSITIVE, "depth_variance_scale": POSITIVE, "min_translation_sigma_m": POSITIVE,
         "jitter_variance_scale": POSITIVE, "min_jitter_frames": Limit(ge=3), "drift_per_metre": NON_NEGATIVE,
         "proximity_candidates": NON_NEGATIVE, "proximity_radius": POSITIVE, "local_window": NON_NEGATIVE,
+        "visual_rotation_sigma_deg": POSITIVE,
     }
 
     def __post_init__(self) -> None:

@@ -66,6 +66,7 @@ from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
 from ...imu.compensation import AccelerationCompensation
 from ...kcc import (
     KCCFilter,
+    MapRefineConfig,
     KeyframeMap,
     TrackResult,
     TrackSummary,
@@ -75,6 +76,7 @@ from ...kcc import (
     keyframe_filter,
     keyframe_map,
     orthographic_project,
+    refine_against_map,
     summarize,
     track_step,
 )
@@ -139,6 +141,9 @@ class _LoopEdge:
     T_jk: Tensor  # (4, 4) float64
     variance: Tensor  # (3,) m^2
     psr: float
+    # (3, 3) covariance of the edge's rotation (a right perturbation, the new keyframe's axes), rad^2,
+    # where it was measured (``loop.visual_rotation``); None: the attitude's rotation, no information.
+    rotation_cov: Tensor | None = None
 
 
 def _content_center(T_wk: Tensor, p_w: Tensor, like: Tensor) -> Tensor:
@@ -207,6 +212,9 @@ class NISlam:
         self.loop_tests: list[dict[str, float]] = []
         # Edges to the recent keyframes (``loop.local_window``).
         self.local = {"verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
+        # Verified loops whose pose was refined over the old keyframe's map (``loop.visual_rotation``).
+        self.visual_rotation = {"refined": 0, "not_converged": 0, "max_change_deg": 0.0}
+        self.refine_cfg = MapRefineConfig(levels=2)
         # Odometry edges by the source of their translation variance in the loop test
         # (``loop.acceptance_covariance``).
         self.odometry_variances = {"jitter": 0, "eq19": 0}
@@ -561,7 +569,8 @@ class NISlam:
         return lc.jitter_variance_scale * d2.square().mean(dim=0) / 6.0
 
     def _information(
-        self, T_ij: Tensor, variance: Tensor | None, dt: float, depth: float, loop: bool, scaled: bool = True, extra: float = 0.0
+        self, T_ij: Tensor, variance: Tensor | None, dt: float, depth: float, loop: bool, scaled: bool = True, extra: float = 0.0,
+        rotation_cov: Tensor | None = None,
     ) -> Tensor:
         """(6, 6) information of edge ``T_ij`` (4, 4) from its translation variance (3,) m^2.
 
@@ -580,21 +589,26 @@ class NISlam:
         with an inertial attitude. ``extra`` (m^2) is added to every axis (``_drift_variance``).
         Rotation: for odometry, the attitude source's error between keyframes ``dt`` seconds
         apart (``LoopConfig``); a loop edge carries none, since its rotation is the attitude's
-        own estimate, already in the graph through the odometry edges.
+        own estimate, already in the graph through the odometry edges, unless its rotation was
+        measured (``rotation_cov``, (3, 3) rad^2, ``loop.visual_rotation``): then its inverse, and
+        that rotation's variance (the mean of its diagonal) replaces the attitude's in the shift.
         """
         lc = self.cfg.loop
         if variance is None:
             variance = torch.full((3,), math.inf, dtype=torch.float64)
         scale = torch.tensor([lc.translation_variance_scale, lc.translation_variance_scale, lc.depth_variance_scale], dtype=torch.float64)
-        shift = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64) * depth**2 * self._rotation_variance(dt)
+        var_r = self._rotation_variance(dt) if rotation_cov is None else float(rotation_cov.diagonal().mean())
+        shift = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64) * depth**2 * var_r
         var_t = (variance.to(torch.float64) * (scale if scaled else 1.0) + shift + extra).nan_to_num(nan=1.0, posinf=1.0).clamp(lc.min_translation_sigma_m**2, 1.0)
         R = T_ij[:3, :3].to(torch.float64)
         info_t = R.T @ torch.diag(1.0 / var_t) @ R
-        if loop:
-            info_r = torch.zeros(3, dtype=torch.float64)
+        if loop and rotation_cov is not None:
+            info_r = torch.linalg.inv(rotation_cov.to(torch.float64))
+        elif loop:
+            info_r = torch.zeros(3, 3, dtype=torch.float64)
         else:
-            info_r = torch.full((3,), 1.0 / self._rotation_variance(dt), dtype=torch.float64)
-        return torch.block_diag(info_t, torch.diag(info_r))
+            info_r = torch.eye(3, dtype=torch.float64) / self._rotation_variance(dt)
+        return torch.block_diag(info_t, info_r)
 
     def _rotation_variance(self, dt: float) -> float:
         """Per-axis variance of the attitude's relative rotation over ``dt`` seconds, rad^2."""
@@ -639,7 +653,33 @@ class NISlam:
         if best is None:
             return
         self.loops["verified"] += 1
-        self._try_loop(best.candidate, kid, best.T_jk, best.variance)
+        best = self._refine_loop(best, kf)
+        self._try_loop(best.candidate, kid, best.T_jk, best.variance, rotation_cov=best.rotation_cov)
+
+    def _refine_loop(self, edge: _LoopEdge, kf: _Keyframe) -> _LoopEdge:
+        """``edge`` with its pose refined over the candidate's map and its rotation's covariance.
+
+        Only with ``loop.visual_rotation`` and an inertial attitude; unchanged where the
+        refinement does not converge. The refinement's covariance is of a left perturbation in
+        the old keyframe's axes; the graph's residual is in the new keyframe's, so it is rotated
+        by ``R_jk``, and ``visual_rotation_sigma_deg`` is added per axis.
+        """
+        lc = self.cfg.loop
+        if not lc.visual_rotation or self.attitude.source == "groundtruth" or kf.cloud is None:
+            return edge
+        old = self.keyframes[edge.candidate]
+        c = kf.cloud
+        res = refine_against_map(c.points, c.grey, c.valid, old.map, old.resolution, edge.T_jk[None].to(c.points.device), self.refine_cfg)
+        if not bool(res.converged[0]):
+            self.visual_rotation["not_converged"] += 1
+            return edge
+        T = res.T[0].cpu()
+        R = T[:3, :3]
+        cov = R.T @ res.covariance[0, 3:, 3:].cpu() @ R + torch.eye(3, dtype=torch.float64) * math.radians(lc.visual_rotation_sigma_deg) ** 2
+        change = math.degrees(float(so3_log(edge.T_jk[:3, :3].T @ R).norm()))
+        self.visual_rotation["refined"] += 1
+        self.visual_rotation["max_change_deg"] = max(self.visual_rotation["max_change_deg"], change)
+        return replace(edge, T_jk=T, rotation_cov=cov)
 
     def _local_window(self, kid: int) -> None:
         """Register keyframe ``kid`` against the ``loop.local_window`` keyframes before its predecessor.
@@ -714,7 +754,9 @@ class NISlam:
             torch.stack(self.edges_test_info),
         )
 
-    def _try_loop(self, j_old: int, k_new: int, T_jk: Tensor, variance: Tensor, window: int | None = None) -> bool:
+    def _try_loop(
+        self, j_old: int, k_new: int, T_jk: Tensor, variance: Tensor, window: int | None = None, rotation_cov: Tensor | None = None,
+    ) -> bool:
         """Test the edge ``j_old -> k_new`` against the graph; keep it and its optimisation if consistent.
 
         Args:
@@ -724,6 +766,8 @@ class NISlam:
             window: None for a loop (the whole graph, keyframe 0 held); else the oldest keyframe
                 of a local window (``_local_window``): only the keyframes from it on and the
                 edges among them take part, that keyframe held.
+            rotation_cov: (3, 3) covariance of the edge's rotation where it was measured
+                (``_refine_loop``); None: the attitude's rotation, which carries no information.
 
         Returns:
             Whether the edge was accepted.
@@ -731,11 +775,13 @@ class NISlam:
         t0 = self._tic()
         lc = self.cfg.loop
         span = self.keyframes[k_new].timestamp - self.keyframes[j_old].timestamp
-        info = self._information(T_jk, variance, span, 0.0, loop=True)
+        info = self._information(T_jk, variance, span, 0.0, loop=True, rotation_cov=rotation_cov)
         test_info = info
         if self._jitter_test:
             depth = self.keyframes[k_new].depth
-            test_info = self._information(T_jk, variance, span, depth, loop=True, extra=self._drift_variance(j_old, k_new))
+            test_info = self._information(
+                T_jk, variance, span, depth, loop=True, extra=self._drift_variance(j_old, k_new), rotation_cov=rotation_cov,
+            )
         i, j, T_ij, info_all, test_all = self._edges()
         T0 = torch.stack([kf.T_wk for kf in self.keyframes])
         lo = 0 if window is None else window
@@ -873,6 +919,9 @@ class NISlam:
             "loops": dict(self.loops),
             "loop_tests": list(self.loop_tests),
             "local_window": dict(self.local),
+            # null: off, or ground-truth attitude (never refined)
+            "loop_visual_rotation": dict(self.visual_rotation)
+            if self.cfg.loop.visual_rotation and self.attitude.source != "groundtruth" else None,
             "odometry_variances": dict(self.odometry_variances),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,
         }
