@@ -89,9 +89,9 @@ def test_jacobian_matches_autograd(pair):
     pb, gb, vb, km, r, T_true, _ = pair
     cfg = MapRefineConfig()
     f64 = torch.float64
-    (D, ok), (G, _) = (_pool(x.to(f64), km.valid, 1) for x in (km.depth, km.grey))
+    fields, ok = _pool(torch.stack([km.depth, km.grey], dim=1).to(f64), km.valid, 1)
     p = pb[:, ::50].to(f64)
-    lv = _Level(torch.stack([D, G], dim=1), ok, r.to(f64)[:, None], p, gb[:, ::50].to(f64), vb[:, ::50], cfg)
+    lv = _Level(fields, ok, r.to(f64)[:, None], p, gb[:, ::50].to(f64), vb[:, ::50], cfg)
     T = _perturbed(T_true, 0.3, 0.5, 5)[None]
     r_d, r_g, n, m, q, use = lv.residuals(T)
 

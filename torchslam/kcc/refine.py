@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -101,27 +101,27 @@ class MapRefinement:
     converged: Tensor
 
 
-def _pool(field: Tensor, valid: Tensor, f: int) -> tuple[Tensor, Tensor]:
-    """(B, H/f, W/f) mean of ``field`` over the valid pixels of each f x f block, holes filled.
+def _pool(fields: Tensor, valid: Tensor, f: int) -> tuple[Tensor, Tensor]:
+    """(B, C, H/f, W/f) mean of (B, C, H, W) ``fields`` over the valid pixels of each f x f block, holes filled.
 
     A block is kept where half its pixels are valid. An orthographic map is sparse where the
     cloud is coarser than the map (a point per pixel at most), so a pixel left empty then takes
     the mean of its valid 3 x 3 neighbours where at least two are (the bilinear interpolant
-    needs four valid corners).
+    needs four valid corners). Returns the fields and (B, H/f, W/f) validity.
     """
-    w = valid.to(field.dtype)
+    w = valid.to(fields.dtype)[:, None]
     if f == 1:
-        s, c = field * w, w
+        s, c = fields * w, w
     else:
-        s = F.avg_pool2d((field * w)[:, None], f)[:, 0]
-        c = F.avg_pool2d(w[:, None], f)[:, 0]
+        s = F.avg_pool2d(fields * w, f)
+        c = F.avg_pool2d(w, f)
     ok = c >= 0.5
     mean = torch.where(ok, s / c.clamp_min(0.5), torch.zeros_like(s))
-    k = ok.to(field.dtype)
-    s3 = F.avg_pool2d((mean * k)[:, None], 3, stride=1, padding=1, count_include_pad=True)[:, 0]
-    c3 = F.avg_pool2d(k[:, None], 3, stride=1, padding=1, count_include_pad=True)[:, 0]
-    fill = ~ok & (c3 >= 2 / 9 - 1e-9)
-    return torch.where(fill, s3 / c3.clamp_min(1 / 9), mean), ok | fill
+    k = ok.to(fields.dtype)
+    s3 = F.avg_pool2d(mean * k, 3, stride=1, padding=1, count_include_pad=True)
+    c3 = F.avg_pool2d(k, 3, stride=1, padding=1, count_include_pad=True)
+    fill = ~ok & (c3 >= 2 / 9 - 1e-6)
+    return torch.where(fill, s3 / c3.clamp_min(1 / 9), mean), (ok | fill)[:, 0]
 
 
 def _bilinear(fields: Tensor, valid: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -208,27 +208,33 @@ def refine_against_map(
     p = points[:, ::step].to(f64)
     g = grey[:, ::step].to(f64)
     pv = valid[:, ::step] & p.isfinite().all(-1)
+    # Valid points first in each row (their order kept), the columns no row needs dropped.
+    order = torch.argsort((~pv).to(torch.uint8), dim=1, stable=True)[:, : max(1, int(pv.sum(1).max()))]
+    p, g, pv = p.gather(1, order[..., None].expand(-1, -1, 3)), g.gather(1, order), pv.gather(1, order)
     p = torch.where(pv[..., None], p, torch.zeros_like(p))
     T = T_init.to(f64).clone()
     r = resolution.to(f64)[:, None]
-    fields = torch.stack([kf_map.depth.to(f64), kf_map.grey.to(f64)], dim=1)  # (B, 2, H, W)
+    fields = torch.stack([kf_map.depth, kf_map.grey], dim=1)  # (B, 2, H, W), pooled in the map's dtype
     eye = torch.eye(6, dtype=f64, device=p.device)
     for level in reversed(range(cfg.finest, cfg.finest + cfg.levels)):
         f = 2**level
-        (D, ok_l), (G, _) = (_pool(fields[:, c], kf_map.valid, f) for c in range(2))
-        lv = _Level(torch.stack([D, G], dim=1), ok_l, r * f, p, g, pv, cfg)
+        pooled, ok_l = _pool(fields, kf_map.valid, f)
+        lv = _Level(pooled.to(f64), ok_l, r * f, p, g, pv, cfg)
         scales = lv.scales(T)
-        ev = lv.evaluate(T, scales)
+        ev = lv.cost(T, scales)[1]()
         lam = torch.full((B,), 1e-4, dtype=f64, device=p.device)
         for _ in range(cfg.iterations):
             A = ev.H + lam[:, None, None] * torch.diag_embed(ev.H.diagonal(dim1=-2, dim2=-1)) + 1e-12 * eye
             delta = -torch.linalg.solve(A, ev.grad[..., None])[..., 0]
             T_try = se3_exp(delta) @ T
-            trial = lv.evaluate(T_try, scales)
-            better = trial.cost < ev.cost
+            cost, normal = lv.cost(T_try, scales)
+            better = cost < ev.cost
+            lam = torch.where(better, lam / 3, lam * 4).clamp(1e-7, 1e7)
+            if not bool(better.any()):
+                continue  # every row keeps its point: no normal equations at the rejected one
+            trial = normal()
             T = torch.where(better[:, None, None], T_try, T)
             ev = _Eval(*(torch.where(better.view(-1, *([1] * (a.dim() - 1))), a, b) for a, b in zip(trial, ev)))
-            lam = torch.where(better, lam / 3, lam * 4).clamp(1e-7, 1e7)
     cov = torch.linalg.inv(ev.H + 1e-12 * eye)
     converged = (lam < 1e3) & (ev.count >= cfg.min_points)
     return MapRefinement(T=T, covariance=cov, count=ev.count, depth_rmse=ev.rmse, converged=converged)
@@ -266,25 +272,38 @@ class _Level:
         r_d, r_g, _, _, _, use = self.residuals(T)
         return _spread(r_d, use, 1e-4)[:, None], _spread(r_g, use, 1e-3)[:, None]
 
-    def evaluate(self, T: Tensor, scales: tuple[Tensor, Tensor]) -> _Eval:
-        """Truncated Huber cost (a point unusable or beyond ``outlier_sigmas`` costs the cap) and normal equations."""
+    def cost(self, T: Tensor, scales: tuple[Tensor, Tensor]) -> tuple[Tensor, Callable[[], _Eval]]:
+        """(B,) truncated Huber cost at ``T`` (a point unusable or beyond ``outlier_sigmas`` costs the
+        cap), and a function that completes it with the normal equations there."""
         r_d, r_g, n, m, q, use = self.residuals(T)
         terms = [(r_d, n, scales[0])] + ([(r_g, m, scales[1])] if self.cfg.grey else [])
-        B = q.shape[0]
-        cost = q.new_zeros(B)
-        Hm = q.new_zeros(B, 6, 6)
-        grad = q.new_zeros(B, 6)
-        keeps = []
         c = self.cfg.outlier_sigmas
+        cap = robust_cost(q.new_full((1, 1), c), "huber", _HUBER)
+        cost = q.new_zeros(q.shape[0])
+        kept = []
         for r, a, s in terms:
             z = r.abs() / s  # in spreads
             keep = use & (z <= c)
-            keeps.append(keep)
-            cap = robust_cost(torch.full_like(z[:, :1], c), "huber", _HUBER)
             cost = cost + torch.where(keep, robust_cost(z, "huber", _HUBER), cap).sum(1)
-            w = keep * robust_weight(z, "huber", _HUBER) / s.square()
-            h, gr = _normal_terms(torch.cat([a, torch.cross(q, a, dim=-1)], dim=-1), r, w)
-            Hm, grad = Hm + h, grad + gr
-        count = keeps[0].sum(1)
-        rmse = (torch.where(keeps[0], r_d, torch.zeros_like(r_d)).square().sum(1) / count.clamp_min(1)).sqrt()
-        return _Eval(cost, Hm, grad, count, rmse)
+            kept.append((r, a, s, z, keep))
+
+        def normal() -> _Eval:
+            Hm = q.new_zeros(q.shape[0], 6, 6)
+            grad = q.new_zeros(q.shape[0], 6)
+            for r, a, s, z, keep in kept:
+                w = keep * robust_weight(z, "huber", _HUBER) / s.square()
+                h, gr = _normal_terms(torch.cat([a, _cross(q, a)], dim=-1), r, w)
+                Hm, grad = Hm + h, grad + gr
+            keep_d = kept[0][4]
+            count = keep_d.sum(1)
+            rmse = (torch.where(keep_d, r_d, torch.zeros_like(r_d)).square().sum(1) / count.clamp_min(1)).sqrt()
+            return _Eval(cost, Hm, grad, count, rmse)
+
+        return cost, normal
+
+
+def _cross(a: Tensor, b: Tensor) -> Tensor:
+    """(..., 3) cross products, written out (``torch.cross`` is slower on small last dimensions)."""
+    a0, a1, a2 = a.unbind(-1)
+    b0, b1, b2 = b.unbind(-1)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim=-1)

@@ -62,8 +62,9 @@ class LoopConfig:
             pose graph it causes (``backend.edge_consistency``: for a linear-Gaussian graph the
             Mahalanobis norm of the loop's innovation against the graph's predicted relative-pose
             covariance) is at most this quantile of the chi-square distribution with the loop
-            edge's degrees of freedom (3: the verification measures translation; its rotation is
-            the attitude's own, already in the graph). 0.999 rejects one true loop in a thousand
+            edge's degrees of freedom (3 where the verification measures translation and its
+            rotation is the attitude's own, already in the graph; 6 where ``visual_rotation``
+            measured the rotation too). 0.999 rejects one true loop in a thousand
             when the edges' covariances are honest.
         max_odometry_bend_m: an extra guard after the statistical test: reject the loop when,
             after optimisation, any odometry edge's translation residual exceeds this, metres
