@@ -40,14 +40,26 @@ def test_synthetic_loop_closure_accepted_and_lowers_error():
     cfg = SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL)  # the lap closes before the end: a revisit
     seq = generate_sequence(cfg)
     # Ground-truth attitude: the odometry then drifts in translation alone, which the loop removes
-    # (0.198 -> 0.144 cm). With the IMU attitude and its acceleration compensation the odometry
-    # stays within 0.42 cm here and the loop moves it to 0.50 (without the compensation: 3.44 ->
-    # 0.80; README "Acceleration compensation").
+    # (0.198 -> 0.144 cm).
     with_loop, a_loop = _run(seq, attitude="groundtruth")
     without, a_none = _run(seq, attitude="groundtruth", loop={"enabled": False})
     loops = with_loop.output.metrics["loops"]
     assert loops["accepted"] >= 1
     assert a_loop.stats["rmse"] < a_none.stats["rmse"]
+
+
+def test_imu_attitude_loop_lowers_error_with_its_rotation_measured():
+    # With the IMU attitude the odometry stays within 0.42 cm here. A loop edge that keeps the
+    # attitude's rotation moved it to 0.50 (the heading the gyro drifted stays in the graph); with
+    # the loop's rotation measured over the old keyframe's map (loop.visual_rotation) it falls to
+    # 0.24 (README "Loop rotation measured").
+    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
+    with_loop, a_loop = _run(seq, attitude="imu")
+    without, a_none = _run(seq, attitude="imu", loop={"enabled": False})
+    assert with_loop.output.metrics["loops"]["accepted"] >= 1
+    assert with_loop.output.metrics["loop_visual_rotation"]["refined"] >= 1
+    assert without.output.metrics["loop_visual_rotation"] is None
+    assert a_loop.stats["rmse"] < 0.8 * a_none.stats["rmse"], (a_loop.stats["rmse"], a_none.stats["rmse"])
 
 
 def test_revisit_found_by_pose_graph_proximity_when_appearance_finds_none():

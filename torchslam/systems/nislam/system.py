@@ -919,9 +919,9 @@ class NISlam:
             "loops": dict(self.loops),
             "loop_tests": list(self.loop_tests),
             "local_window": dict(self.local),
-            # null: off, or ground-truth attitude (never refined)
+            # null: off (or loops off), or ground-truth attitude (never refined)
             "loop_visual_rotation": dict(self.visual_rotation)
-            if self.cfg.loop.visual_rotation and self.attitude.source != "groundtruth" else None,
+            if self.cfg.loop.enabled and self.cfg.loop.visual_rotation and self.attitude.source != "groundtruth" else None,
             "odometry_variances": dict(self.odometry_variances),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,
         }
