@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Callable, ClassVar, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, check_float, check_shape
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_float, check_limits, check_shape
 from ..geometry import se3_exp
 from ..optim.robust import robust_cost, robust_weight
 from .fusion import KeyframeMap
@@ -68,15 +68,13 @@ class MapRefineConfig:
     grey: bool = True
     min_points: int = 500
 
+    LIMITS: ClassVar[dict[str, Limit]] = {
+        "levels": AT_LEAST_1, "finest": NON_NEGATIVE, "iterations": AT_LEAST_1, "max_points": AT_LEAST_1,
+        "outlier_sigmas": POSITIVE, "max_slope": POSITIVE, "min_points": AT_LEAST_1,
+    }
+
     def __post_init__(self) -> None:
-        if int(self.finest) < 0:
-            raise ConfigError(f"MapRefineConfig.finest: expected a non-negative integer, got {self.finest}")
-        for name in ("levels", "iterations", "max_points", "min_points"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"MapRefineConfig.{name}: expected a positive integer, got {getattr(self, name)}")
-        for name in ("outlier_sigmas", "max_slope"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"MapRefineConfig.{name}: expected a positive number, got {getattr(self, name)}")
+        check_limits(self)
 
 
 @dataclass(frozen=True)
