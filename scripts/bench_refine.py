@@ -29,7 +29,7 @@ from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.tum import TUMSequence
 from torchslam.environment import environment_info
 from torchslam.geometry import se3_inverse, so3_exp, so3_log
-from torchslam.kcc import MapRefineConfig, choose_resolution, keyframe_map, orthographic_project, refine_against_map
+from torchslam.kcc import choose_resolution, keyframe_map, orthographic_project, refine_against_map
 from torchslam.systems.nislam import NISlam, NISlamConfig
 from torchslam.systems.nislam.step import backproject
 
@@ -65,7 +65,7 @@ def pair_errors(seq, name: str, gaps: list[int], start_deg: float, seed: int = 0
             T0 = T_true.clone()
             T0[:3, :3] = so3_exp(axis / axis.norm() * math.radians(start_deg)) @ T_true[:3, :3]
             t0 = time.perf_counter()
-            res = refine_against_map(cj.points, cj.grey, cj.valid, kf_map, r, T0[None], MapRefineConfig(levels=2))
+            res = refine_against_map(cj.points, cj.grey, cj.valid, kf_map, r, T0[None])
             ms.append(1000 * (time.perf_counter() - t0))
             if not bool(res.converged[0]):
                 failed += 1

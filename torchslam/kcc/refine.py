@@ -34,13 +34,12 @@ from torch import Tensor
 
 from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_float, check_limits, check_shape
 from ..geometry import se3_exp
-from ..optim.robust import robust_cost, robust_weight
+from ..optim.robust import MAD_TO_SIGMA, robust_cost, robust_weight
 from .fusion import KeyframeMap
 
 __all__ = ["MapRefineConfig", "MapRefinement", "refine_against_map"]
 
 _HUBER = 1.345  # Huber's kernel at 95 % Gaussian efficiency, in spreads
-_MAD = 1.4826  # median absolute value to standard deviation, Gaussian
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,7 @@ class MapRefineConfig:
         min_points: fewer usable points at the finest level: not converged.
     """
 
-    levels: int = 3
+    levels: int = 2
     finest: int = 0
     iterations: int = 8
     max_points: int = 20000
@@ -88,8 +87,8 @@ class MapRefinement:
             the points' errors as independent, so it is a lower bound.
         count: (B,) long points used in the last step.
         depth_rmse: (B,) float64 RMS of the used depth residuals in the last step, metres.
-        converged: (B,) bool: at least ``min_points`` points and the last step under 1e-6 rad
-            and 1e-5 m.
+        converged: (B,) bool: at least ``min_points`` points, and the damping at the end under
+            1e3 (the last steps still lowered the cost, instead of being refused again and again).
     """
 
     T: Tensor
@@ -153,7 +152,7 @@ def _spread(r: Tensor, use: Tensor, floor: float) -> Tensor:
     """(B,) robust spread of the used residuals (1.4826 x median |r|), at least ``floor``."""
     a = torch.where(use, r.abs(), torch.full_like(r, math.nan))
     med = torch.nanmedian(a, dim=1).values.nan_to_num(nan=floor)
-    return (_MAD * med).clamp_min(floor)
+    return (MAD_TO_SIGMA * med).clamp_min(floor)
 
 
 def _normal_terms(J: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
@@ -218,14 +217,14 @@ def refine_against_map(
         f = 2**level
         pooled, ok_l = _pool(fields, kf_map.valid, f)
         lv = _Level(pooled.to(f64), ok_l, r * f, p, g, pv, cfg)
-        scales = lv.scales(T)
-        ev = lv.cost(T, scales)[1]()
+        _, normal, scales = lv.cost(T)
+        ev = normal()
         lam = torch.full((B,), 1e-4, dtype=f64, device=p.device)
         for _ in range(cfg.iterations):
             A = ev.H + lam[:, None, None] * torch.diag_embed(ev.H.diagonal(dim1=-2, dim2=-1)) + 1e-12 * eye
             delta = -torch.linalg.solve(A, ev.grad[..., None])[..., 0]
             T_try = se3_exp(delta) @ T
-            cost, normal = lv.cost(T_try, scales)
+            cost, normal, _ = lv.cost(T_try, scales)
             better = cost < ev.cost
             lam = torch.where(better, lam / 3, lam * 4).clamp(1e-7, 1e7)
             if not bool(better.any()):
@@ -247,7 +246,7 @@ class _Eval(NamedTuple):
 
 
 class _Level:
-    """One pyramid level's map and the thinned cloud: residuals, scales, normal equations."""
+    """One pyramid level's map and the thinned cloud: residuals, cost, normal equations."""
 
     def __init__(self, fields: Tensor, ok: Tensor, r: Tensor, p: Tensor, g: Tensor, pv: Tensor, cfg: MapRefineConfig):
         self.fields, self.ok, self.r, self.p, self.g, self.pv, self.cfg = fields, ok, r, p, g, pv, cfg
@@ -265,15 +264,15 @@ class _Level:
         m = torch.stack([-d_u[:, 1] / r, -d_v[:, 1] / r, torch.zeros_like(u)], dim=-1)
         return q[..., 2] - val[:, 0], self.g - val[:, 1], n, m, q, use
 
-    def scales(self, T: Tensor) -> tuple[Tensor, Tensor]:
-        """(B, 1) robust spreads of the depth and grey residuals at ``T``, held over the level."""
-        r_d, r_g, _, _, _, use = self.residuals(T)
-        return _spread(r_d, use, 1e-4)[:, None], _spread(r_g, use, 1e-3)[:, None]
-
-    def cost(self, T: Tensor, scales: tuple[Tensor, Tensor]) -> tuple[Tensor, Callable[[], _Eval]]:
+    def cost(
+        self, T: Tensor, scales: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Callable[[], _Eval], tuple[Tensor, Tensor]]:
         """(B,) truncated Huber cost at ``T`` (a point unusable or beyond ``outlier_sigmas`` costs the
-        cap), and a function that completes it with the normal equations there."""
+        cap), a function that completes it with the normal equations there, and the residuals'
+        (B, 1) robust spreads it used: ``scales``, or those at ``T`` (held over a level)."""
         r_d, r_g, n, m, q, use = self.residuals(T)
+        if scales is None:
+            scales = _spread(r_d, use, 1e-4)[:, None], _spread(r_g, use, 1e-3)[:, None]
         terms = [(r_d, n, scales[0])] + ([(r_g, m, scales[1])] if self.cfg.grey else [])
         c = self.cfg.outlier_sigmas
         cap = robust_cost(q.new_full((1, 1), c), "huber", _HUBER)
@@ -297,7 +296,7 @@ class _Level:
             rmse = (torch.where(keep_d, r_d, torch.zeros_like(r_d)).square().sum(1) / count.clamp_min(1)).sqrt()
             return _Eval(cost, Hm, grad, count, rmse)
 
-        return cost, normal
+        return cost, normal, scales
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:

@@ -15,9 +15,10 @@ from .blocksparse import (
 from .lm import LMConfig, LMResult, levenberg_marquardt_se3
 from .pairsolve import PairStep, solve_pair_steps
 from .positive import positive_parameter, positive_value
-from .robust import RobustKernel, robust_cost, robust_weight
+from .robust import MAD_TO_SIGMA, RobustKernel, robust_cost, robust_weight
 
 __all__ = [
+    "MAD_TO_SIGMA",
     "BlockCholeskyFactor",
     "BlockCholeskySymbolic",
     "BlockSparseMatrix",

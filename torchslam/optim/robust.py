@@ -20,7 +20,10 @@ from torch import Tensor
 
 from ..errors import ConfigError, check_float, parse_choice
 
-__all__ = ["RobustKernel", "robust_weight", "robust_cost"]
+__all__ = ["MAD_TO_SIGMA", "RobustKernel", "robust_weight", "robust_cost"]
+
+# 1.4826 times the median absolute value estimates a Gaussian's standard deviation (robust scales).
+MAD_TO_SIGMA = 1.4826
 
 
 class RobustKernel(enum.Enum):

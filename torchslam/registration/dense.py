@@ -97,7 +97,7 @@ from ..geometry import (
     se3_exp_numpy,
     undistorted_rays,
 )
-from ..optim import solve_pair_steps
+from ..optim import MAD_TO_SIGMA, solve_pair_steps
 
 __all__ = [
     "DenseConfig",
@@ -137,8 +137,6 @@ _SCALE_ITERATIONS = 5
 # results agree to float round-off). Off, the CPU runs the device path (what an accelerator runs:
 # the synchronisation budgets are measured on it).
 HOST_FAST_PATHS = True
-# 1.4826 MAD estimates a Gaussian's standard deviation.
-_MAD_TO_SIGMA = 1.4826
 
 
 class DenseRobust(enum.Enum):
@@ -823,7 +821,7 @@ def _scale(rn: Tensor, m: Tensor, robust: DenseRobust, cfg: DenseConfig, start: 
     floor = _floors(cfg, rn)
     if robust is DenseRobust.HUBER:
         med = torch.where(m, rn.abs(), torch.full_like(rn, float("nan"))).nanmedian(dim=-1).values
-        return torch.maximum(_MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
+        return torch.maximum(MAD_TO_SIGMA * torch.nan_to_num(med, nan=0.0), floor)
     if _numpy_ok(rn, m):
         return _scale_numpy(rn, m, cfg, floor, start)
     nu = cfg.student_t_dof

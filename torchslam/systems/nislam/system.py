@@ -66,7 +66,6 @@ from ...geometry import se3_from_Rt, se3_inverse, so3_log, undistorted_rays
 from ...imu.compensation import AccelerationCompensation
 from ...kcc import (
     KCCFilter,
-    MapRefineConfig,
     KeyframeMap,
     TrackResult,
     TrackSummary,
@@ -214,7 +213,6 @@ class NISlam:
         self.local = {"verified": 0, "accepted": 0, "rejected_by_chi2": 0, "rejected_by_odometry": 0}
         # Verified loops whose pose was refined over the old keyframe's map (``loop.visual_rotation``).
         self.visual_rotation = {"refined": 0, "not_converged": 0, "max_change_deg": 0.0}
-        self.refine_cfg = MapRefineConfig(levels=2)
         # Odometry edges by the source of their translation variance in the loop test
         # (``loop.acceptance_covariance``).
         self.odometry_variances = {"jitter": 0, "eq19": 0}
@@ -656,6 +654,12 @@ class NISlam:
         best = self._refine_loop(best, kf)
         self._try_loop(best.candidate, kid, best.T_jk, best.variance, rotation_cov=best.rotation_cov)
 
+    @property
+    def _refines_loops(self) -> bool:
+        """Whether verified loops are refined over the old keyframe's map: ``loop.visual_rotation``
+        with an inertial attitude (ground truth's rotation is never replaced)."""
+        return self.cfg.loop.visual_rotation and self.attitude.source != "groundtruth"
+
     def _refine_loop(self, edge: _LoopEdge, kf: _Keyframe) -> _LoopEdge:
         """``edge`` with its pose refined over the candidate's map and its rotation's covariance.
 
@@ -664,18 +668,18 @@ class NISlam:
         the old keyframe's axes; the graph's residual is in the new keyframe's, so it is rotated
         by ``R_jk``, and ``visual_rotation_sigma_deg`` is added per axis.
         """
-        lc = self.cfg.loop
-        if not lc.visual_rotation or self.attitude.source == "groundtruth" or kf.cloud is None:
+        if not self._refines_loops or kf.cloud is None:
             return edge
         old = self.keyframes[edge.candidate]
         c = kf.cloud
-        res = refine_against_map(c.points, c.grey, c.valid, old.map, old.resolution, edge.T_jk[None].to(c.points.device), self.refine_cfg)
+        res = refine_against_map(c.points, c.grey, c.valid, old.map, old.resolution, edge.T_jk[None].to(c.points.device))
         if not bool(res.converged[0]):
             self.visual_rotation["not_converged"] += 1
             return edge
         T = res.T[0].cpu()
         R = T[:3, :3]
-        cov = R.T @ res.covariance[0, 3:, 3:].cpu() @ R + torch.eye(3, dtype=torch.float64) * math.radians(lc.visual_rotation_sigma_deg) ** 2
+        floor = math.radians(self.cfg.loop.visual_rotation_sigma_deg) ** 2
+        cov = R.T @ res.covariance[0, 3:, 3:].cpu() @ R + torch.eye(3, dtype=torch.float64) * floor
         change = math.degrees(float(so3_log(edge.T_jk[:3, :3].T @ R).norm()))
         self.visual_rotation["refined"] += 1
         self.visual_rotation["max_change_deg"] = max(self.visual_rotation["max_change_deg"], change)
@@ -920,8 +924,7 @@ class NISlam:
             "loop_tests": list(self.loop_tests),
             "local_window": dict(self.local),
             # null: off (or loops off), or ground-truth attitude (never refined)
-            "loop_visual_rotation": dict(self.visual_rotation)
-            if self.cfg.loop.enabled and self.cfg.loop.visual_rotation and self.attitude.source != "groundtruth" else None,
+            "loop_visual_rotation": dict(self.visual_rotation) if self.cfg.loop.enabled and self._refines_loops else None,
             "odometry_variances": dict(self.odometry_variances),
             "posegraph_ms_max": max(self.posegraph_ms) if self.posegraph_ms else None,
         }
