@@ -298,10 +298,26 @@ def test_cuda_kernels_equal_cpu():
     assert torch.equal(m_gpu.pairs.cpu(), m_cpu.pairs) and torch.equal(m_gpu.distances.cpu(), m_cpu.distances)
 
 
+def _spin(seconds):
+    """Burn ``seconds`` of this process's CPU time (the clock the backend probe reads)."""
+    end = time.process_time() + seconds
+    while time.process_time() < end:
+        pass
+
+
 def _slowed(fn, seconds):
     def slow(*args):
-        time.sleep(seconds)
+        _spin(seconds)
         return fn(*args)
+
+    return slow
+
+
+def _sized(fn, seconds_per_million):
+    """``fn`` that burns CPU in proportion to K1 x K2 (a brute force's cost)."""
+    def slow(d1, d2, *args):
+        _spin(seconds_per_million * d1.shape[0] * d2.shape[0] / 1e6)
+        return fn(d1, d2, *args)
 
     return slow
 
@@ -325,7 +341,7 @@ def test_auto_backend_on_the_cpu_is_the_faster_one_timed_once(monkeypatch, slow)
     for name, fn in originals.items():
         # The slow one sleeps; the other returns a result computed beforehand, in no time.
         done = fn(*_probe_args())
-        monkeypatch.setattr(matching, name, _slowed(fn, 0.02) if name.endswith(slow) else (lambda *args, done=done: done))
+        monkeypatch.setattr(matching, name, _slowed(fn, 0.005) if name.endswith(slow) else (lambda *args, done=done: done))
     fast = matching.MatchBackend.OPENCV if slow == "int8" else matching.MatchBackend.INT8
     assert matching._resolve_backend("auto", cpu) is fast
     # Measured once per process: a later change of speed does not move the choice.
@@ -342,6 +358,65 @@ def test_auto_backend_on_the_cpu_is_the_faster_one_timed_once(monkeypatch, slow)
     ref = match_descriptors(a, b, mutual=True, backend="torch")
     got = match_descriptors(a, b, mutual=True)
     assert torch.equal(got.pairs, ref.pairs) and torch.equal(got.distances, ref.distances)
+
+
+def test_auto_backend_is_decided_at_the_large_probe_and_skips_it_when_hopeless(monkeypatch):
+    # A GEMM with a fixed cost per call but a cheaper brute force: dearer at 384 x 384, cheaper
+    # at GC-SLAM's sizes, so the large probe must decide (the small one alone picked OpenCV on a
+    # CPU where int8 is 3 x faster at 2,000 x 2,000).
+    from torchslam.features import matching
+
+    if not matching._INT8_GEMM:
+        pytest.skip("this torch build has no int8 GEMM on the CPU")
+    int8, opencv = matching._match_int8, matching._match_opencv
+    sizes = []
+
+    def int8_fixed(d1, d2, *args):
+        sizes.append(d1.shape[0])
+        _spin(0.002 + 0.0005 * d1.shape[0] * d2.shape[0] / 1e6)
+        return int8(d1, d2, *args)
+
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_match_int8", int8_fixed)
+    monkeypatch.setattr(matching, "_match_opencv", _sized(opencv, 0.005))
+    assert matching.cpu_auto_backend() is matching.MatchBackend.INT8
+    assert sorted(set(sizes)) == [matching._PROBE_DESCRIPTORS, matching._PROBE_DESCRIPTORS_LARGE]
+    # Far slower at the small size (an AVX2-only CPU): never timed at the large one.
+    sizes.clear()
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_match_int8", _sized(lambda *a: (sizes.append(a[0].shape[0]), int8(*a))[1], 0.5))
+    assert matching.cpu_auto_backend() is matching.MatchBackend.OPENCV
+    assert set(sizes) == {matching._PROBE_DESCRIPTORS}
+
+
+def test_auto_backend_probe_reads_the_process_cpu_time(monkeypatch):
+    # OpenCV matches on worker threads, and a run has other work for the cores they take: the
+    # probe compares the CPU time of every thread of the process. Here int8 works 1 ms and waits
+    # 10 (cheap by that clock, slow by the wall clock) and OpenCV works 3 ms on a worker thread
+    # (invisible to the calling thread's clock), so only the process's CPU time picks int8.
+    import threading
+
+    from torchslam.features import matching
+
+    if not matching._INT8_GEMM:
+        pytest.skip("this torch build has no int8 GEMM on the CPU")
+    done = matching._match_opencv(*_probe_args())  # a result for both fakes: no real work in the timings
+
+    def waiting(*args):
+        _spin(0.001)
+        time.sleep(0.01)
+        return done
+
+    def on_a_worker(*args):
+        worker = threading.Thread(target=_spin, args=(0.003,))
+        worker.start()
+        worker.join()
+        return done
+
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_match_int8", waiting)
+    monkeypatch.setattr(matching, "_match_opencv", on_a_worker)
+    assert matching.cpu_auto_backend() is matching.MatchBackend.INT8
 
 
 def test_auto_backend_is_opencv_without_an_int8_gemm(monkeypatch):

@@ -98,22 +98,37 @@ def _int8_gemm_works() -> bool:
 
 
 _INT8_GEMM = _int8_gemm_works()
-# Descriptors per side of the timing that picks the CPU's ``auto`` backend: large enough that
-# the GEMM's speed, not call overhead, decides; small enough to cost milliseconds once.
+# Descriptors per side of the two timings that pick the CPU's ``auto`` backend. The first is
+# cheap everywhere and settles a CPU without an int8 kernel (there the GEMM is tens of times
+# slower); the second is near GC-SLAM's 2,000 features, where the GEMM's speed, not the call's
+# fixed cost, decides (at 384 the two backends can come out even where the GEMM is 3x faster at
+# 2,000).
 _PROBE_DESCRIPTORS = 384
+_PROBE_DESCRIPTORS_LARGE = 1024
+# An int8 GEMM this many times OpenCV's CPU time at the small size is not timed at the large one.
+_PROBE_HOPELESS = 4.0
 # The CPU backend that ``auto`` resolved to in this process (measured on first use), or None.
 _cpu_auto: MatchBackend | None = None
 
 
-def _best_ms(fn, repeats: int = 3) -> float:
-    """Fastest of ``repeats`` timed calls of ``fn`` after one warm-up call, milliseconds."""
+def _best_ms(fn, repeats: int = 3, clock=time.perf_counter) -> float:
+    """Fastest of ``repeats`` timed calls of ``fn`` after one warm-up call, milliseconds of ``clock``."""
     fn()
     best = float("inf")
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = clock()
         fn()
-        best = min(best, time.perf_counter() - start)
+        best = min(best, clock() - start)
     return best * 1e3
+
+
+def _probe_cpu_ms(n: int) -> tuple[float, float]:
+    """CPU milliseconds (every thread of the process) of one int8 and one OpenCV match of n x n random descriptors."""
+    gen = torch.Generator().manual_seed(0)
+    d1, d2 = torch.randint(0, 256, (2, n, 32), dtype=torch.uint8, generator=gen)
+    int8_ms = _best_ms(lambda: _match_int8(d1, d2, 50, False, None), clock=time.process_time)
+    opencv_ms = _best_ms(lambda: _match_opencv(d1, d2, 50, False, None), clock=time.process_time)
+    return int8_ms, opencv_ms
 
 
 def cpu_auto_backend() -> MatchBackend:
@@ -121,21 +136,22 @@ def cpu_auto_backend() -> MatchBackend:
 
     ``torch._int_mm`` is exact wherever it runs, but only fast where oneDNN has an int8 kernel
     for the CPU (int8 dot-product instructions, AVX-512 VNNI or AMX): there it matches 2,000 x
-    2,000 ORB descriptors in about 0.7 x OpenCV's time, while on an AVX2-only CPU the same call
-    took 60 x OpenCV's (720 against 11 ms, which made GC-SLAM's sparse front-end 2.5 x slower
-    end to end). So the first call times both backends once on the same random descriptors
-    (best of 3, a few milliseconds) and keeps the faster for the rest of the process. Both
-    give the same matches, so the choice changes speed only.
+    2,000 ORB descriptors in about 0.3 x OpenCV's CPU time, while on an AVX2-only CPU the same
+    call took 60 x OpenCV's (720 against 11 ms, which made GC-SLAM's sparse front-end 2.5 x
+    slower end to end). So the first call times both backends (best of 3 after a warm-up) on the
+    same random descriptors and keeps the cheaper for the rest of the process: first 384 x 384,
+    and where int8 is not hopeless there, 1,024 x 1,024, whose figures decide. The clock is the
+    process's CPU time, so OpenCV's worker threads count: a run has other work for the cores
+    they take. Both give the same matches, so the choice changes speed only.
     """
     global _cpu_auto
     if _cpu_auto is None:
         if not _INT8_GEMM:
             _cpu_auto = MatchBackend.OPENCV
         else:
-            gen = torch.Generator().manual_seed(0)
-            d1, d2 = torch.randint(0, 256, (2, _PROBE_DESCRIPTORS, 32), dtype=torch.uint8, generator=gen)
-            int8_ms = _best_ms(lambda: _match_int8(d1, d2, 50, False, None))
-            opencv_ms = _best_ms(lambda: _match_opencv(d1, d2, 50, False, None))
+            int8_ms, opencv_ms = _probe_cpu_ms(_PROBE_DESCRIPTORS)
+            if int8_ms < _PROBE_HOPELESS * opencv_ms:
+                int8_ms, opencv_ms = _probe_cpu_ms(_PROBE_DESCRIPTORS_LARGE)
             _cpu_auto = MatchBackend.INT8 if int8_ms < opencv_ms else MatchBackend.OPENCV
     return _cpu_auto
 
