@@ -9,6 +9,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 import pytest
 
 from torchslam.data import png
@@ -81,8 +82,17 @@ def _images(rng: np.random.Generator) -> list[np.ndarray]:
     ]
 
 
+@pytest.fixture(params=[1, 2], ids=["torch-scan", "numpy-scan"])
+def intra_op_threads(request):
+    """Torch's intra-op threads: one takes the ``Sub`` rows' torch scan, two NumPy's."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(request.param)
+    yield request.param
+    torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("filters", [[0], [1], [0, 1, 1], [1, 0]])
-def test_none_and_sub_rows_decode_as_opencv_does(filters):
+def test_none_and_sub_rows_decode_as_opencv_does(filters, intra_op_threads):
     rng = np.random.default_rng(0)
     for img in _images(rng):
         colour = img.ndim == 3
