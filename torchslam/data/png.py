@@ -3,12 +3,13 @@
 Decoding is a large share of a frame's CPU time (README, "PNG decoding"): a 640x480 colour PNG
 of TUM RGB-D takes about 6.6 ms in OpenCV and its 16-bit depth PNG 3.7 ms, nearly all of it in
 zlib's inflate. This module inflates with ISA-L (``isal``, about 3x faster) and undoes the PNG
-row filters with one running sum per byte lane (torch's scan, or NumPy's), for the simple
-images the datasets write: 8-bit RGB, 8- or 16-bit grey, not interlaced, every row filtered
-with ``None`` or ``Sub`` (the TUM RGB-D and the HoloLens sequences). Anything else (``Up``, ``Average`` or ``Paeth`` rows, palettes, alpha, ancillary
-chunks that may change the pixels, a damaged stream) returns None, and the caller decodes with
-OpenCV as before; so does everything when ``isal`` is not installed. Where it returns an image,
-it is the one OpenCV returns, to the bit (``tests/data/test_png.py``).
+row filters with one running sum per byte lane (torch's scan, or NumPy's), for the simple images
+the datasets write: 8-bit RGB, 8- or 16-bit grey, not interlaced, every row filtered with
+``None`` or ``Sub`` (the TUM RGB-D and the HoloLens sequences). Anything else (``Up``,
+``Average`` or ``Paeth`` rows, palettes, alpha, ancillary chunks that may change the pixels, a
+damaged stream) returns None, and the caller decodes with OpenCV as before; so does everything
+when ``isal`` is not installed. Where it returns an image, it is the one OpenCV returns, to the
+bit (``tests/data/test_png.py``).
 """
 
 from __future__ import annotations
