@@ -159,3 +159,29 @@ def test_graph_cost_and_edge_consistency_bad_input():
         edge_consistency(T0, i, j, T_ij, info, 0, 3, eye, torch.zeros(6, 6, dtype=torch.float64), 0.9)
     with pytest.raises(ShapeError, match="new_T_ij"):
         edge_consistency(T0, i, j, T_ij, info, 0, 3, eye[:3], info[0], 0.9)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 6, 7, 12, 50])
+def test_chi2_quantile_matches_scipy(dof):
+    stats = pytest.importorskip("scipy.stats")
+    rtol = 1e-13 if dof <= 12 else 1e-8
+    for p in [1e-6, 0.001, 0.05, 0.3, 0.5, 0.7, 0.9, 0.99, 0.999, 0.9999, 1 - 1e-7]:
+        assert chi2_quantile(p, dof) == pytest.approx(float(stats.chi2.ppf(p, dof)), rel=rtol), p
+
+
+def test_chi2_quantile_rejects_bad_arguments_and_needs_no_scipy():
+    import subprocess
+    import sys
+
+    from torchslam.errors import InvalidValueError
+
+    for p in (0.0, 1.0, -0.1, 1.5):
+        with pytest.raises(InvalidValueError, match="probability"):
+            chi2_quantile(p, 6)
+    with pytest.raises(InvalidValueError, match="dof"):
+        chi2_quantile(0.99, 0)
+    # SciPy's statistics module took 0.4-0.9 s to import at a run's first loop test.
+    code = ("import sys; from torchslam.backend import chi2_quantile; chi2_quantile(0.999, 6); "
+            "print(sorted(m for m in sys.modules if m.startswith('scipy.stats')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"
