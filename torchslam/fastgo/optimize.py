@@ -39,6 +39,7 @@ from ..errors import (
     AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ShapeError, check_float, check_limits, check_shape, parse_choice,
 )
 from ..optim.blocksparse import Schedule, SolverMethod
+from ..optim.graphs import adjacency, connected_components
 from ..optim.lm import LMConfig, levenberg_marquardt_se3
 from ..optim.robust import RobustKernel, robust_weight
 from .linearize import PairLinearization, _blocks, _centred, _pair_cost, assemble
@@ -318,9 +319,6 @@ class _Work:
 
 
 def _prepare(problems: Sequence[FastGOProblem], config: FastGOConfig) -> _Work:
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     if len(problems) == 0:
         raise ShapeError("problems: expected at least one FastGOProblem, got none")
     dev = problems[0].T_wc.device
@@ -379,8 +377,7 @@ def _prepare(problems: Sequence[FastGOProblem], config: FastGOConfig) -> _Work:
     # Connectivity: every connected part gets a gauge; parts without the user's gauge are
     # reported as disconnected and held by their lowest keyframe.
     wp = work_pairs.detach().cpu().numpy()
-    graph = coo_matrix((np.ones(wp.shape[0]), (wp[:, 0], wp[:, 1])), shape=(Ntot, Ntot))
-    _, labels = connected_components(graph, directed=False)
+    _, labels = connected_components(adjacency(Ntot, wp[:, 0], wp[:, 1]))
     gauge_nodes = np.array([int(o) + int(p.fixed) for p, o in zip(problems, node_offsets[:-1])])
     labels_t = torch.as_tensor(labels, device=dev)
     gauge_label = labels_t[torch.as_tensor(gauge_nodes, device=dev)]

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigError, DTypeError, InvalidValueError, ShapeError, check_float, check_shape, parse_choice
+from .graphs import Csr, adjacency, bfs_distances, bfs_last, connected_components, induced, reverse_cuthill_mckee
 
 __all__ = [
     "BlockSparseMatrix",
@@ -189,7 +190,7 @@ class BlockSparseMatrix:
 
 
 # ----------------------------------------------------------------------------------------------
-# Symbolic analysis: nested dissection order and supernodal structure (host, numpy/scipy).
+# Symbolic analysis: nested dissection order and supernodal structure (host, NumPy: torchslam.optim.graphs).
 # ----------------------------------------------------------------------------------------------
 
 
@@ -431,43 +432,10 @@ def _square_map(ud: np.ndarray, nb: int) -> np.ndarray:
     return (ud[:, None] * nb + ud[None, :]).ravel()
 
 
-def _adjacency(n: int, rows: np.ndarray, cols: np.ndarray):
-    import scipy.sparse as sp
-
-    # float64 data and int32 indices are what scipy's graph routines want: no conversions later
-    data = np.ones(2 * rows.size, dtype=np.float64)
-    A = sp.csr_matrix((data, (np.concatenate([rows, cols]).astype(np.int32), np.concatenate([cols, rows]).astype(np.int32))), shape=(n, n))
-    A.sum_duplicates()
-    A.data[:] = 1.0
-    return A
-
-
-def _induced(A, nodes: np.ndarray, local: np.ndarray):
-    """Subgraph of the CSR adjacency ``A`` induced by ``nodes`` (``local`` is scratch, all -1)."""
-    import scipy.sparse as sp
-
-    k = nodes.size
-    local[nodes] = np.arange(k)
-    starts = A.indptr[nodes]
-    counts = A.indptr[nodes + 1] - starts
-    flat = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(int(counts.sum()))
-    nb = local[A.indices[flat]]
-    keep = nb >= 0
-    rows = np.repeat(np.arange(k), counts)[keep]
-    ptr = np.zeros(k + 1, dtype=np.int32)
-    np.cumsum(np.bincount(rows, minlength=k), out=ptr[1:])
-    local[nodes] = -1
-    return sp.csr_matrix((np.ones(rows.size), nb[keep].astype(np.int32), ptr), shape=(k, k))
-
-
-def _bisect(A_sub) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _bisect(A_sub: Csr) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Split a connected graph by a breadth-first level set; ``None`` when it has too few levels."""
-    from scipy.sparse.csgraph import breadth_first_order, shortest_path
-
-    order = breadth_first_order(A_sub, 0, directed=False, return_predecessors=False)
-    start = int(order[-1])  # a far node: repeat from it for a pseudo-peripheral start
-    dist = shortest_path(A_sub, method="D", unweighted=True, directed=False, indices=start)
-    dist = dist.astype(np.int64)
+    start = bfs_last(A_sub, 0)  # a far node: repeat from it for a pseudo-peripheral start
+    dist = bfs_distances(A_sub, start)
     nlev = int(dist.max()) + 1
     if nlev < 3:
         return None
@@ -486,14 +454,14 @@ def _bisect(A_sub) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     in_lev = dist == lev
     # Keep in the separator only level nodes that touch the next level; the rest join side A.
     nxt = (dist == lev + 1).astype(np.float64)
-    touches = (A_sub @ nxt) > 0
+    touches = A_sub.neighbour_sum(nxt) > 0
     sep = in_lev & touches
     side_a = (dist < lev) | (in_lev & ~touches)
     side_b = dist > lev
     return np.nonzero(sep)[0], np.nonzero(side_a)[0], np.nonzero(side_b)[0]
 
 
-def _band_supernodes(A, size: int) -> tuple[list[np.ndarray], list[int], list[np.ndarray]]:
+def _band_supernodes(A: Csr, size: int) -> tuple[list[np.ndarray], list[int], list[np.ndarray]]:
     """Supernodes of ``size`` consecutive nodes of a reverse Cuthill-McKee (band) order.
 
     Pose graphs that follow a route have a narrow profile in this order, so a run of
@@ -506,13 +474,11 @@ def _band_supernodes(A, size: int) -> tuple[list[np.ndarray], list[int], list[np
         Supernode node lists, parent supernode (-1 for roots) and update sets ``U_t`` (node ids
         sorted by elimination rank).
     """
-    from scipy.sparse.csgraph import connected_components, reverse_cuthill_mckee
-
-    nf = A.shape[0]
+    nf = A.n
     if nf == 0:
         return [], [], []
-    perm = np.asarray(reverse_cuthill_mckee(A, symmetric_mode=True), dtype=np.int64)
-    ncomp, labels = connected_components(A, directed=False)
+    perm = reverse_cuthill_mckee(A)
+    ncomp, labels = connected_components(A)
     perm = perm[np.argsort(labels[perm], kind="stable")]
     comp_bounds = np.searchsorted(labels[perm], np.arange(ncomp + 1))
     sizes = np.diff(comp_bounds)
@@ -525,8 +491,7 @@ def _band_supernodes(A, size: int) -> tuple[list[np.ndarray], list[int], list[np
     rank[perm] = np.arange(nf)
     chunk_of = np.repeat(np.arange(nsn), np.diff(bounds))
     # off-diagonal pattern in rank space, grouped by the chunk of the row and cut to later ranks
-    coo = A.tocoo()
-    ri, ci = rank[coo.row], rank[coo.col]
+    ri, ci = rank[A.rows()], rank[A.indices]
     later = ci >= bounds[chunk_of[ri] + 1]
     own_c, own_r = chunk_of[ri[later]], ci[later]
     order = np.argsort(own_c, kind="stable")
@@ -548,11 +513,9 @@ def _band_supernodes(A, size: int) -> tuple[list[np.ndarray], list[int], list[np
     return sn_nodes, parent, [perm[u] for u in U_rank]
 
 
-def _dissect(A, leaf_size: int) -> tuple[list[np.ndarray], list[int]]:
+def _dissect(A: Csr, leaf_size: int) -> tuple[list[np.ndarray], list[int]]:
     """Nested dissection of the adjacency ``A`` into supernodes and their parents."""
-    from scipy.sparse.csgraph import connected_components
-
-    nf = A.shape[0]
+    nf = A.n
     # --- nested dissection into a forest of supernodes --------------------------------------
     sn_nodes: list[np.ndarray] = []
     sn_parent: list[int] = []
@@ -562,8 +525,8 @@ def _dissect(A, leaf_size: int) -> tuple[list[np.ndarray], list[int]]:
         nodes, parent = stack.pop()
         if nodes.size == 0:
             continue
-        sub = _induced(A, nodes, scratch)
-        ncomp, labels = connected_components(sub, directed=False)
+        sub = induced(A, nodes, scratch)
+        ncomp, labels = connected_components(sub)
         order = np.argsort(labels, kind="stable")
         bounds = np.searchsorted(labels[order], np.arange(ncomp + 1))
         for c in range(ncomp):
@@ -574,7 +537,7 @@ def _dissect(A, leaf_size: int) -> tuple[list[np.ndarray], list[int]]:
                 sn_nodes.append(comp)
                 sn_parent.append(parent)
                 continue
-            split = _bisect(sub if ncomp == 1 else _induced(A, comp, scratch))
+            split = _bisect(sub if ncomp == 1 else induced(A, comp, scratch))
             if split is None or split[0].size >= comp.size // 2:
                 sn_nodes.append(comp)  # dense-ish part: no useful separator
                 sn_parent.append(parent)
@@ -645,7 +608,7 @@ def analyze(
     new_id[free_ids] = np.arange(nf)
     edge_keep = free[rows_np] & free[cols_np] & (rows_np != cols_np)
     er, ec = new_id[rows_np[edge_keep]], new_id[cols_np[edge_keep]]
-    A = _adjacency(nf, er, ec)
+    A = adjacency(nf, er, ec)
 
     if ordering == "band":
         sn_nodes, sn_parent, U_band = _band_supernodes(A, leaf_size)

@@ -444,11 +444,6 @@ class ProcessWorker:
         self.optimizer = optimizer
         self.error: BaseException | None = None
         self._done = False
-        # The graph routines FastGO needs (SciPy's sparse graphs, about 0.25 s to import): loaded
-        # before the fork the child has them, and the parent, whose final FastGO needs them
-        # anyway, loads them once instead of both processes each.
-        import scipy.sparse.csgraph  # noqa: F401
-
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()
         self.process = ctx.Process(target=_serve, args=(child, optimizer, insert), name="torchslam-gcslam-optimizer",
