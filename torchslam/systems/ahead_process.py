@@ -199,6 +199,9 @@ class ProcessSource:
 def _child(system, source, sequence, conn, free, stop, bufs, threads) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops, then stops this process
     torch.set_num_threads(threads[0])
+    # The parent's count again (a no-op for OpenCV): a different one here would rebuild OpenCV's
+    # thread pool, whose threads did not survive the fork, and that hung in pthread_cond_destroy
+    # (tried with 1 to spare ORB's second thread).
     cv2.setNumThreads(threads[1])
     skipped_seen = len(getattr(sequence, "skipped", None) or ())
     slot = 0
