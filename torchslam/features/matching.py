@@ -142,7 +142,9 @@ def cpu_auto_backend() -> MatchBackend:
     same random descriptors and keeps the cheaper for the rest of the process: first 384 x 384,
     and where int8 is not hopeless there, 1,024 x 1,024, whose figures decide. The clock is the
     process's CPU time, so OpenCV's worker threads count: a run has other work for the cores
-    they take. Both give the same matches, so the choice changes speed only.
+    they take (another thread's work during a timed call counts too, in proportion to each
+    call's length; the best of three keeps the cheaper). Both give the same matches, so the
+    choice changes speed only.
     """
     global _cpu_auto
     if _cpu_auto is None:
