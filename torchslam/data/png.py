@@ -125,5 +125,6 @@ def _running_sum(pixels: np.ndarray) -> np.ndarray:
     modulo 256 do not depend on the order of the additions: both give the same bytes.
     """
     if torch.get_num_threads() == 1:
+        # A copy: the inflated bytes are read-only, which torch warns about once per process.
         return torch.cumsum(torch.from_numpy(np.ascontiguousarray(pixels)), 1, dtype=torch.uint8).numpy()
     return np.cumsum(pixels, axis=1, dtype=np.uint8)

@@ -491,7 +491,7 @@ def _band_supernodes(A: Csr, size: int) -> tuple[list[np.ndarray], list[int], li
     rank[perm] = np.arange(nf)
     chunk_of = np.repeat(np.arange(nsn), np.diff(bounds))
     # off-diagonal pattern in rank space, grouped by the chunk of the row and cut to later ranks
-    ri, ci = rank[A.rows()], rank[A.indices]
+    ri, ci = rank[A.rows], rank[A.indices]
     later = ci >= bounds[chunk_of[ri] + 1]
     own_c, own_r = chunk_of[ri[later]], ci[later]
     order = np.argsort(own_c, kind="stable")

@@ -11,6 +11,7 @@ random graphs), so the orderings, and with them every factorisation, stay as the
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,17 +31,21 @@ class Csr:
     def n(self) -> int:
         return self.indptr.size - 1
 
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.n, self.n
-
+    @functools.cached_property
     def rows(self) -> np.ndarray:
         """(nnz,) the row of each stored entry."""
         return np.repeat(np.arange(self.n), np.diff(self.indptr))
 
     def neighbour_sum(self, x: np.ndarray) -> np.ndarray:
         """(n,) per node the sum of ``x`` over its neighbours (the adjacency times ``x``)."""
-        return np.bincount(self.rows(), weights=x[self.indices], minlength=self.n)
+        return np.bincount(self.rows, weights=x[self.indices], minlength=self.n)
+
+    def entries_of(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions in ``indices`` of the rows of ``nodes``, row after row in stored order, and
+        each row's count."""
+        starts = self.indptr[nodes]
+        counts = self.indptr[nodes + 1] - starts
+        return np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(int(counts.sum())), counts
 
 
 def adjacency(n: int, rows: np.ndarray, cols: np.ndarray) -> Csr:
@@ -48,8 +53,7 @@ def adjacency(n: int, rows: np.ndarray, cols: np.ndarray) -> Csr:
     neighbours sorted and unique (SciPy's canonical CSR of the same pattern)."""
     r = np.concatenate([rows, cols]).astype(np.int64)
     c = np.concatenate([cols, rows]).astype(np.int64)
-    key = np.unique(r * n + c)
-    row, col = key // n, key % n if n else key
+    row, col = np.divmod(np.unique(r * n + c), max(n, 1))
     indptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(row, minlength=n), out=indptr[1:])
     return Csr(indptr, col)
@@ -60,9 +64,7 @@ def induced(graph: Csr, nodes: np.ndarray, local: np.ndarray) -> Csr:
     returned so)."""
     k = nodes.size
     local[nodes] = np.arange(k)
-    starts = graph.indptr[nodes]
-    counts = graph.indptr[nodes + 1] - starts
-    flat = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(int(counts.sum()))
+    flat, counts = graph.entries_of(nodes)
     nb = local[graph.indices[flat]]
     keep = nb >= 0
     rows = np.repeat(np.arange(k), counts)[keep]
@@ -83,7 +85,7 @@ def connected_components(graph: Csr) -> tuple[int, np.ndarray]:
     n = graph.n
     if n == 0:
         return 0, np.zeros(0, dtype=np.int64)
-    rows, cols = graph.rows(), graph.indices
+    rows, cols = graph.rows, graph.indices
     label = np.arange(n)
     while True:
         new = label.copy()
@@ -108,9 +110,7 @@ def _levels(graph: Csr, start: int, seen: np.ndarray, sort_key: np.ndarray | Non
     seen[start] = True
     while level.size:
         yield level
-        starts = graph.indptr[level]
-        counts = graph.indptr[level + 1] - starts
-        flat = np.repeat(starts - (np.cumsum(counts) - counts), counts) + np.arange(int(counts.sum()))
+        flat, counts = graph.entries_of(level)
         cand = graph.indices[flat]
         parent = np.repeat(np.arange(level.size), counts)
         fresh = ~seen[cand]
@@ -153,7 +153,7 @@ def reverse_cuthill_mckee(graph: Csr) -> np.ndarray:
     n = graph.n
     degree = np.diff(graph.indptr).astype(np.int32)
     diag = np.zeros(n, dtype=bool)
-    rows = graph.rows()
+    rows = graph.rows
     diag[rows[graph.indices == rows]] = True
     degree += diag  # a diagonal entry counts twice, as in SciPy
     seeds = np.argsort(degree)
