@@ -225,3 +225,35 @@ def test_nislam_gives_the_same_trajectory_prepared_in_a_process_as_on_a_thread()
     assert torch.equal(out["process"].keyframe_indices, out["thread"].keyframe_indices)
     with pytest.raises(ConfigError, match="prepare_ahead_in"):
         config_from_dict(NISlamConfig, {"prepare_ahead_in": "elsewhere"})
+
+
+_PARALLEL_PARENT = """
+import torch
+from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+from torchslam.systems import run_sequence
+from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+
+torch.set_num_threads(2)
+a = torch.randn(64, 128, 128, dtype=torch.float64)
+(a @ a).sum()  # a parallel region: OpenMP's pool now has workers in this process
+seq = generate_sequence(SyntheticConfig(frames=6, trajectory="orbit", seed=5, width=160, height=120))
+system = GCSlam(GCSlamConfig(threaded=False))
+result = run_sequence(system, seq)
+assert system.prepares_ahead_in_process
+print("frames", result.frames_processed, torch.get_num_threads())
+"""
+
+
+def test_a_parent_on_several_threads_that_ran_a_parallel_region_does_not_hang_its_child():
+    """OpenMP's pool does not survive a fork: a child on the parent's intra-op count waited forever
+    in libgomp (``torchslam run --system gcslam --threads 2``). The child runs on one thread."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    try:
+        done = subprocess.run([sys.executable, "-c", _PARALLEL_PARENT], capture_output=True, text=True, timeout=120, env=env)
+    except subprocess.TimeoutExpired:
+        pytest.fail("GC-SLAM with its frames prepared in a child process hung after a parallel region on 2 threads")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[-3:] == ["frames", "6", "2"], done.stdout

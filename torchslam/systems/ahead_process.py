@@ -140,9 +140,9 @@ class ProcessSource:
         self._stop = ctx.Event()
         recv, send = ctx.Pipe(duplex=False)
         self._conn = recv
-        threads = (torch.get_num_threads(), cv2.getNumThreads())
         self.process = ctx.Process(target=_child, name="torchslam-ahead",
-                                   args=(system, source, sequence, send, self._free, self._stop, self._bufs, threads), daemon=True)
+                                   args=(system, source, sequence, send, self._free, self._stop, self._bufs, cv2.getNumThreads()),
+                                   daemon=True)
         self.process.start()
         send.close()
         self._done = False
@@ -196,13 +196,17 @@ class ProcessSource:
                 pass
 
 
-def _child(system, source, sequence, conn, free, stop, bufs, threads) -> None:
+def _child(system, source, sequence, conn, free, stop, bufs, cv_threads: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops, then stops this process
-    torch.set_num_threads(threads[0])
+    # One intra-op thread whatever the parent's: OpenMP's thread pool does not survive a fork, and
+    # a child that ran its parallel regions on the parent's count waited forever in libgomp for
+    # workers that were never forked (``torchslam run --system gcslam --threads 2`` hung once the
+    # parent had run a parallel region; tests/systems/test_ahead_process.py).
+    torch.set_num_threads(1)
     # The parent's count again (a no-op for OpenCV): a different one here would rebuild OpenCV's
     # thread pool, whose threads did not survive the fork, and that hung in pthread_cond_destroy
     # (tried with 1 to spare ORB's second thread).
-    cv2.setNumThreads(threads[1])
+    cv2.setNumThreads(cv_threads)
     skipped_seen = len(getattr(sequence, "skipped", None) or ())
     slot = 0
 
