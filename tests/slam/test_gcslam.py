@@ -251,6 +251,23 @@ def test_loop_closure_is_found_accepted_and_lowers_error():
     torch.testing.assert_close(every.output.T_wc, with_loops.output.T_wc, rtol=0, atol=1e-6)
 
 
+def test_frames_between_keyframes_follow_the_corrected_link_and_keyframes_stay():
+    # The sparse front-end's keyframe links are measured again densely by the optimiser, so the
+    # keyframe poses differ from the tracked links even without a loop.
+    seq = generate_sequence(SyntheticConfig(frames=30, trajectory="orbit", seed=1, **SMALL))
+    spread, a_spread = _run(seq)
+    plain, a_plain = _run(seq, spread_corrections=False)
+    out, ref = spread.output, plain.output
+    assert out.metrics["dense_pairs"]["odometry"] >= 2
+    assert torch.equal(out.keyframe_indices, ref.keyframe_indices)
+    torch.testing.assert_close(out.keyframe_T_wc, ref.keyframe_T_wc, rtol=0, atol=0)
+    rows = torch.isin(out.frame_indices, out.keyframe_indices)
+    torch.testing.assert_close(out.T_wc[rows], ref.T_wc[rows], rtol=0, atol=1e-12)
+    moved = (out.T_wc[~rows, :3, 3] - ref.T_wc[~rows, :3, 3]).norm(dim=-1)
+    assert float(moved.max()) > 1e-5 and float(moved.max()) < 0.02, moved.max()
+    assert a_spread.stats["rmse"] <= a_plain.stats["rmse"] * 1.05, (a_spread.stats["rmse"], a_plain.stats["rmse"])
+
+
 def test_threaded_optimisation_equals_synchronous():
     seq = generate_sequence(SyntheticConfig(frames=40, trajectory="orbit", seed=3, **SMALL))
     sync = run_sequence(GCSlam(GCSlamConfig(threaded=False)), seq).output
@@ -515,10 +532,12 @@ def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch, fronten
     monkeypatch.setattr(cls, "register", register)
     monkeypatch.setattr(gc.GCSlam, "track", track)
     # ORB-measured pairs (keyframe_pairs=sparse): the promoted keyframe's pose is then its own
-    # tracked registration's, which the assertions below compare.
-    off, a_off = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0, keyframe_pairs="sparse")
+    # tracked registration's, which the assertions below compare; and the frames each posed by
+    # their own keyframe alone (spread_corrections off), so that the frames before stay.
+    kw = dict(frontend=frontend, loops=False, keyframe_pairs="sparse", spread_corrections=False)
+    off, a_off = _run(seq, keyframe_weak_ratio=0, **kw)
     seen.clear()
-    on, a_on = _run(seq, frontend=frontend, loops=False, keyframe_weak_ratio=0.5, keyframe_pairs="sparse")
+    on, a_on = _run(seq, keyframe_weak_ratio=0.5, **kw)
     assert off.output.metrics["tracking"]["promoted_keyframes"] == 0
     assert on.output.metrics["tracking"]["promoted_keyframes"] == 1
     kfs = on.output.keyframe_indices.tolist()

@@ -134,3 +134,81 @@ def test_output_carries_the_log_and_empty_output_has_no_frames():
     empty = FrameLog.empty({"track": 0.5}, {"m": 1})
     assert empty.T_wc.shape == (0, 4, 4) and empty.frame_indices.shape == (0,)
     assert empty.stage_ms == {"track": 0.5} and empty.metrics == {"m": 1}
+
+
+def _linked(n: int = 13, every: int = 4, seed: int = 3):
+    """``_planted`` with every keyframe linked to the one before by the tracked pose between them."""
+    log, T_wc, T_wk = _planted(n, every, seed)
+    for k in range(1, len(T_wk)):
+        log.link(k, k - 1, se3_inverse(T_wk[k - 1]) @ T_wk[k], log.geom_time[k * every])
+    return log, T_wc, T_wk
+
+
+def _geodesic(T1: np.ndarray, T2: np.ndarray, frac: float) -> np.ndarray:
+    """``T1 expm(frac logm(T1^-1 T2))`` by SciPy's matrix logarithm and exponential (float64)."""
+    from scipy.linalg import expm, logm
+
+    return T1 @ expm(frac * np.real(logm(np.linalg.solve(T1, T2))))
+
+
+def test_spread_moves_each_frame_along_the_geodesic_to_its_pose_through_the_next_keyframe():
+    every = 4
+    log, T_wc, T_wk = _linked(every=every)  # keyframes 0..3 at frames 0, 4, 8, 12
+    C = se3_exp(0.05 * torch.randn(len(T_wk), 6, generator=seeded(4), dtype=torch.float64))
+    T_new = C @ T_wk  # each keyframe corrected differently: every link changed
+    got = log.poses(T_new, spread=True).numpy()
+    plain = log.poses(T_new).numpy()
+    t = np.array(log.geom_time)
+    for k in range(len(log)):
+        a = log.kf[k]
+        if a + 1 >= len(T_wk):  # the last keyframe's frames have nothing to follow
+            np.testing.assert_allclose(got[k], plain[k], rtol=0, atol=1e-12)
+            continue
+        T_ref = (se3_inverse(T_wk[a]) @ T_wk[a + 1]).numpy()
+        through_b = T_new[a + 1].numpy() @ np.linalg.solve(T_ref, log.T_kf[k].numpy())
+        frac = (t[k] - t[a * every]) / (t[(a + 1) * every] - t[a * every])
+        np.testing.assert_allclose(got[k], _geodesic(plain[k], through_b, frac), rtol=0, atol=1e-9)
+    # Keyframes keep their poses exactly.
+    for a in range(len(T_wk)):
+        assert np.array_equal(got[a * every], plain[a * every])
+    assert not np.allclose(got[1:every], plain[1:every], atol=1e-4)
+    # The live estimate: the same over the keyframes posed so far; the last one's frames as they are.
+    torch.testing.assert_close(log.so_far(T_new, spread=True).T_wc, torch.from_numpy(got), rtol=0, atol=0)
+    part = log.so_far(T_new[:2], spread=True).T_wc  # keyframes 0 and 1: frames 0-7
+    torch.testing.assert_close(part[:every], torch.from_numpy(got[:every]), rtol=0, atol=1e-12)
+    torch.testing.assert_close(part[every:], torch.from_numpy(plain[every : 2 * every]), rtol=0, atol=1e-12)
+
+
+def test_spread_of_a_translation_is_linear_in_time():
+    log, T_wc, T_wk = _linked(n=9, every=4)
+    shift = torch.tensor([0.03, -0.02, 0.01], dtype=torch.float64)
+    T_new = T_wk.clone()
+    T_new[1:, :3, 3] += shift  # keyframe 1 onwards moved: the link 0 -> 1 changed by a pure translation
+    got = log.poses(T_new, spread=True)
+    t = torch.tensor(log.geom_time)
+    for k in range(1, 4):
+        frac = (t[k] - t[0]) / (t[4] - t[0])
+        torch.testing.assert_close(got[k, :3, 3], T_wc[k, :3, 3] + frac * shift, rtol=0, atol=1e-8)
+        torch.testing.assert_close(got[k, :3, :3], T_wc[k, :3, :3], rtol=0, atol=1e-8)
+    # Keyframe 1's frames: the link 1 -> 2 is kept, so they move rigidly with it.
+    torch.testing.assert_close(got[4:8, :3, 3], T_wc[4:8, :3, 3] + shift, rtol=0, atol=1e-9)
+
+
+def test_spread_changes_nothing_where_every_link_is_kept_or_missing():
+    log, T_wc, T_wk = _linked()
+    G = se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.2, -0.4, 0.1], dtype=torch.float64))
+    moved = G @ T_wk  # the whole graph moved rigidly: every link as tracked
+    torch.testing.assert_close(log.poses(moved, spread=True), log.poses(moved), rtol=0, atol=1e-10)
+    C = se3_exp(0.05 * torch.randn(len(T_wk), 6, generator=seeded(5), dtype=torch.float64))
+    plain = FrameLog()  # no links: unlinked keyframes
+    for k in range(len(log)):
+        plain.record(_frame(k, _JITTER * (-1) ** k), log.kf[k], log.T_kf[k])
+    assert torch.equal(plain.poses(C @ T_wk, spread=True), plain.poses(C @ T_wk))
+    # A successor linked to another keyframe (a relocalisation) leaves its predecessor's frames be.
+    reloc, _, _ = _planted(13, 4, 3)
+    reloc.link(1, 0, se3_inverse(T_wk[0]) @ T_wk[1], reloc.geom_time[4])
+    reloc.link(2, 0, se3_inverse(T_wk[0]) @ T_wk[2], reloc.geom_time[8])
+    got, ref = reloc.poses(C @ T_wk, spread=True), reloc.poses(C @ T_wk)
+    assert not torch.allclose(got[1:4], ref[1:4], atol=1e-4)  # keyframe 0 -> 1: spread
+    torch.testing.assert_close(got[4:], ref[4:], rtol=0, atol=0)  # 1 -> 2 not linked to 1; 3 not linked
+    assert log.poses(C @ T_wk, spread=False).equal(log.poses(C @ T_wk))

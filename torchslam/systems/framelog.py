@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..data.frame import Frame
 from ..data.trajectory import Trajectory
+from ..geometry.lie import se3_exp, se3_inverse, se3_log
 from .base import SystemOutput, empty_output, frame_poses, resample_poses
 
 __all__ = ["FrameLog", "voxel_downsample"]
@@ -34,6 +35,10 @@ class FrameLog:
         T_kf: (4, 4) float64 pose of the frame in its keyframe's frame.
         prior: None for a tracked frame, else why its pose is a motion prior (a system's tag:
             NI-SLAM ``"velocity"``; GC-SLAM ``"lost"`` or ``"unlinked"``).
+
+    And per keyframe ``k`` that :meth:`link` described, ``links[k]``: the keyframe it was linked
+    to when it was made, that link's pose (``T_ref_k``, as tracked) and its depth instant, for
+    :meth:`poses`' ``spread``.
     """
 
     def __init__(self) -> None:
@@ -43,6 +48,7 @@ class FrameLog:
         self.kf: list[int] = []
         self.T_kf: list[Tensor] = []
         self.prior: list[str | None] = []
+        self.links: dict[int, tuple[int, Tensor, float]] = {}
 
     def __len__(self) -> int:
         return len(self.index)
@@ -72,12 +78,64 @@ class FrameLog:
         self.kf[-1] = kf
         self.T_kf[-1] = torch.eye(4, dtype=torch.float64)
 
-    def poses(self, T_wk: Tensor) -> Tensor:
-        """(N, 4, 4) float64 world poses of all frames from the (K, 4, 4) keyframe poses, at the depth instants."""
-        return frame_poses(T_wk, self.kf, self.T_kf)
+    def link(self, kf: int, reference: int | None, T_ref: Tensor | None, time: float) -> None:
+        """Keyframe ``kf``, made at depth instant ``time``, was placed by tracking at ``T_ref``
+        (4, 4) in keyframe ``reference`` (None: unlinked, nothing recorded)."""
+        if reference is not None and T_ref is not None:
+            self.links[kf] = (int(reference), T_ref.detach().to("cpu", torch.float64), float(time))
 
-    def so_far(self, T_wk: Tensor) -> Trajectory | None:
-        """The frames whose keyframe is among the K of ``T_wk`` (K, 4, 4), at the depth instants.
+    def poses(self, T_wk: Tensor, spread: bool = False) -> Tensor:
+        """(N, 4, 4) float64 world poses of all frames from the (K, 4, 4) keyframe poses, at the depth instants.
+
+        ``spread``: the frames between keyframe ``a`` and the next one, ``b``, where ``b`` was
+        linked to ``a`` when it was made (:meth:`link`), follow the correction the keyframe
+        poses made to that link, in proportion to their time from ``a`` to ``b``. A frame is
+        tracked against ``a`` alone, so ``T_wk[a] @ T_kf`` places it by ``a``'s correction only,
+        while the optimisation (a loop, a link measured again) may have moved ``b`` otherwise
+        relative to ``a``: the same frame reached through ``b``, ``T_wk[b] @ T_ref_b^-1 @ T_kf``,
+        differs by that change. The frame takes the geodesic between the two, at the fraction
+        ``(t - t_a) / (t_b - t_a)`` of its depth instant (its own axes, so a rotation turns it
+        about itself). Keyframes keep their poses (fraction 0); frames of the last keyframe, of
+        a keyframe whose successor was linked to another (a relocalisation) or unlinked, and
+        keyframes the optimisation left as tracked are unchanged (the two ways agree).
+        """
+        return self._poses(T_wk, len(self), spread)
+
+    def _poses(self, T_wk: Tensor, n: int, spread: bool) -> Tensor:
+        """:meth:`poses` of the first ``n`` frames, whose keyframes are all among ``T_wk``."""
+        if not spread or not self.links or not n:
+            return frame_poses(T_wk, self.kf[:n], self.T_kf[:n])
+        dev, K = T_wk.device, T_wk.shape[0]
+        kf_of = torch.tensor(self.kf[:n], dtype=torch.int64)
+        T_kf = torch.stack(self.T_kf[:n]).to(T_wk)
+        T = T_wk[kf_of.to(dev)] @ T_kf
+        # The keyframes a whose successor b = a + 1 was linked to a and that have a frame of their
+        # own in the log (the first row of a: the ids never decrease along it).
+        first = torch.searchsorted(kf_of, torch.arange(K))
+        logged = (first < len(kf_of)) & (kf_of[first.clamp(max=len(kf_of) - 1)] == torch.arange(K))
+        nxt = [a for a in range(K - 1) if bool(logged[a]) and self.links.get(a + 1, (None,))[0] == a]
+        if not nxt:
+            return T
+        slot = torch.full((K,), -1, dtype=torch.int64)
+        slot[torch.tensor(nxt)] = torch.arange(len(nxt))
+        rows = (slot[kf_of] >= 0).nonzero().flatten()  # the frames to spread
+        s = slot[kf_of[rows]]  # each one's keyframe among ``nxt``
+        t_geom = torch.tensor(self.geom_time[:n], dtype=torch.float64)
+        t_a = t_geom[first[torch.tensor(nxt)]]
+        t_b = torch.tensor([self.links[a + 1][2] for a in nxt], dtype=torch.float64)
+        T_ref_inv = se3_inverse(torch.stack([self.links[a + 1][1] for a in nxt])).to(T_wk)
+        span = (t_b - t_a)[s]
+        frac = torch.where(span > 0, (t_geom[rows] - t_a[s]) / torch.where(span > 0, span, 1.0), 0.0).clamp(0.0, 1.0)
+        rows_d = rows.to(dev)
+        T1 = T[rows_d]
+        T2 = T_wk[kf_of[rows].to(dev) + 1] @ T_ref_inv[s.to(dev)] @ T_kf[rows_d]
+        out = T.clone()
+        out[rows_d] = T1 @ se3_exp(se3_log(se3_inverse(T1) @ T2) * frac.to(T1)[:, None])
+        return out
+
+    def so_far(self, T_wk: Tensor, spread: bool = False) -> Trajectory | None:
+        """The frames whose keyframe is among the K of ``T_wk`` (K, 4, 4), at the depth instants
+        (``spread``: as :meth:`poses`, over the links among those keyframes).
 
         The keyframe ids never decrease along the log, so those frames are a prefix of it.
         None when there is none.
@@ -85,7 +143,7 @@ class FrameLog:
         n = bisect.bisect_left(self.kf, len(T_wk))
         if n == 0:
             return None
-        T = frame_poses(T_wk, self.kf[:n], self.T_kf[:n])
+        T = self._poses(T_wk, n, spread)
         return Trajectory(torch.tensor(self.geom_time[:n], dtype=torch.float64), T)
 
     def at_frame_times(self, T_geom: Tensor, max_gap: float) -> Tensor:

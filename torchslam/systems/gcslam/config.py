@@ -102,6 +102,11 @@ class GCSlamConfig:
         relocalize_keyframes: recent keyframes tried when a frame cannot be registered.
         max_lost: lost frames in a row before a new, unlinked keyframe is started.
         min_valid_depth: frames with fewer valid depth pixels are not tracked.
+        spread_corrections: in the trajectory, the frames tracked against a keyframe follow the
+            correction the optimisation made to the link from that keyframe to the next one, in
+            proportion to their time along it (``FrameLog.poses``' ``spread``; beyond the paper,
+            whose frames move with their keyframe alone). Keyframe poses are unchanged. README,
+            "Frames between keyframes follow both".
         interpolation_max_gap: largest gap between depth instants across which the trajectory is
             interpolated to the colour timestamps, seconds.
         map_stride: pixel stride of the keyframe clouds in ``map.ply``.
@@ -161,6 +166,7 @@ class GCSlamConfig:
     relocalize_keyframes: int = 5
     max_lost: int = 10
     min_valid_depth: int = 1000
+    spread_corrections: bool = True
     interpolation_max_gap: float = 0.1
     map_stride: int = 4
     map_voxel: float = 0.01

@@ -533,6 +533,7 @@ class GCSlam:
         if not self._worker.threaded:
             # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
             self._inline_s += time.perf_counter() - t_submit
+        self.frames.link(kid, reference, T_ref, frame.geometry_time)
         if promote:
             self.frames.rebase_last(kid)
             self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
@@ -554,7 +555,7 @@ class GCSlam:
         T_wk = list(self.optimizer.T_wk)  # a snapshot: the thread only appends or replaces the list
         if not T_wk:
             return None
-        return self.frames.so_far(torch.stack(T_wk))
+        return self.frames.so_far(torch.stack(T_wk), spread=self.cfg.spread_corrections)
 
     def progress_counters(self) -> dict[str, float]:
         """Keyframes, loops and lost frames so far, for TensorBoard."""
@@ -590,7 +591,7 @@ class GCSlam:
         # the trajectory is interpolated (linear / SLERP) at the colour timestamps between
         # neighbouring depth instants; poses outside their span or across gaps longer than
         # ``interpolation_max_gap`` stay as registered.
-        T_wc = log.at_frame_times(log.poses(T_wk), self.cfg.interpolation_max_gap)
+        T_wc = log.at_frame_times(log.poses(T_wk, spread=self.cfg.spread_corrections), self.cfg.interpolation_max_gap)
         points, colors = self._map(T_wk)  # clouds belong to the depth instants: optimised poses as they are
         # keyframes.txt is stamped with the keyframes' colour timestamps: their re-sampled poses.
         position = {f: p for p, f in enumerate(log.index)}
