@@ -44,6 +44,7 @@ from ...fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closur
 from ...loop import MILDDatabase
 from ...registration.dense import DenseFrame, DenseImages, register_dense_frames
 from ...registration.sparse import FrameFeatures, register_sparse_batch
+from .. import pickling as messages
 from ..base import add_stage_ms
 from ..monitor import Monitor
 from .config import GCSlamConfig
@@ -358,7 +359,7 @@ def _read_events(conn, inbox: queue.Queue) -> None:
     """The child's reader thread: keyframe events into ``inbox`` as they arrive, then None."""
     try:
         while True:
-            ev = pickle.loads(conn.recv_bytes())
+            ev = messages.loads(conn.recv_bytes())
             inbox.put(ev)
             if ev is None:
                 return
@@ -371,7 +372,9 @@ def _serve(conn, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEven
 
     A reader thread takes the events off the pipe as they come, so the parent never waits on a
     full pipe while this process optimises. Messages are pickled by value (``send_bytes``), not
-    through shared memory: they are small (one keyframe's features, the poses) and few.
+    through shared memory: they are small (one keyframe's features, the poses) and few. Their
+    tensors travel as NumPy arrays (``systems.pickling``): torch's own pickling cost 13 ms per
+    keyframe event and grew with the poses sent back after every keyframe.
     """
     # Ctrl-C reaches the whole process group: the parent stops tracking and joins, and the child
     # finishes the keyframes it was given.
@@ -386,11 +389,11 @@ def _serve(conn, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEven
             ev = inbox.get()
             if ev is None:
                 state = {f: getattr(optimizer, f) for f in _FINAL_FIELDS}
-                conn.send_bytes(pickle.dumps(("final", state, log.pending)))
+                conn.send_bytes(messages.dumps(("final", state, log.pending)))
                 return
             insert(optimizer, ev)
             state = {f: getattr(optimizer, f) for f in _PROGRESS_FIELDS}
-            conn.send_bytes(pickle.dumps(("progress", state, log.pending)))
+            conn.send_bytes(messages.dumps(("progress", state, log.pending)))
             log.pending = []
     except BaseException:  # noqa: BLE001 - reported to the parent, which raises it
         try:
@@ -403,7 +406,7 @@ def _receive(conn, process, inbox: queue.Queue) -> None:
     """The parent's receiver thread: the child's messages into ``inbox`` until its last one."""
     while True:
         try:
-            msg = pickle.loads(conn.recv_bytes())
+            msg = messages.loads(conn.recv_bytes())
         except (EOFError, OSError):
             process.join(timeout=5)
             msg = ("error", f"the process ended unexpectedly (exit code {process.exitcode})", [])
@@ -490,7 +493,7 @@ class ProcessWorker:
             self._raise()
         if ev.features.points.device.type != "cpu":
             raise TorchSlamError("GC-SLAM optimisation process: keyframe features must be on the CPU")
-        self._conn.send_bytes(pickle.dumps(ev))
+        self._conn.send_bytes(messages.dumps(ev))
 
     def join(self) -> None:
         """Wait for the keyframes still queued, copy the child's optimiser back and end the child."""
