@@ -140,7 +140,7 @@ def _linked(n: int = 13, every: int = 4, seed: int = 3):
     """``_planted`` with every keyframe linked to the one before by the tracked pose between them."""
     log, T_wc, T_wk = _planted(n, every, seed)
     for k in range(1, len(T_wk)):
-        log.link(k, k - 1, se3_inverse(T_wk[k - 1]) @ T_wk[k], log.geom_time[k * every])
+        log.link(k, k - 1, se3_inverse(T_wk[k - 1]) @ T_wk[k])
     return log, T_wc, T_wk
 
 
@@ -206,8 +206,8 @@ def test_spread_changes_nothing_where_every_link_is_kept_or_missing():
     assert torch.equal(plain.poses(C @ T_wk, spread=True), plain.poses(C @ T_wk))
     # A successor linked to another keyframe (a relocalisation) leaves its predecessor's frames be.
     reloc, _, _ = _planted(13, 4, 3)
-    reloc.link(1, 0, se3_inverse(T_wk[0]) @ T_wk[1], reloc.geom_time[4])
-    reloc.link(2, 0, se3_inverse(T_wk[0]) @ T_wk[2], reloc.geom_time[8])
+    reloc.link(1, 0, se3_inverse(T_wk[0]) @ T_wk[1])
+    reloc.link(2, 0, se3_inverse(T_wk[0]) @ T_wk[2])
     got, ref = reloc.poses(C @ T_wk, spread=True), reloc.poses(C @ T_wk)
     assert not torch.allclose(got[1:4], ref[1:4], atol=1e-4)  # keyframe 0 -> 1: spread
     torch.testing.assert_close(got[4:], ref[4:], rtol=0, atol=0)  # 1 -> 2 not linked to 1; 3 not linked

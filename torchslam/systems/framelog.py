@@ -37,8 +37,8 @@ class FrameLog:
             NI-SLAM ``"velocity"``; GC-SLAM ``"lost"`` or ``"unlinked"``).
 
     And per keyframe ``k`` that :meth:`link` described, ``links[k]``: the keyframe it was linked
-    to when it was made, that link's pose (``T_ref_k``, as tracked) and its depth instant, for
-    :meth:`poses`' ``spread``.
+    to when it was made and that link's pose (``T_ref_k``, as tracked), for :meth:`poses`'
+    ``spread``.
     """
 
     def __init__(self) -> None:
@@ -48,7 +48,7 @@ class FrameLog:
         self.kf: list[int] = []
         self.T_kf: list[Tensor] = []
         self.prior: list[str | None] = []
-        self.links: dict[int, tuple[int, Tensor, float]] = {}
+        self.links: dict[int, tuple[int, Tensor]] = {}
 
     def __len__(self) -> int:
         return len(self.index)
@@ -78,11 +78,11 @@ class FrameLog:
         self.kf[-1] = kf
         self.T_kf[-1] = torch.eye(4, dtype=torch.float64)
 
-    def link(self, kf: int, reference: int | None, T_ref: Tensor | None, time: float) -> None:
-        """Keyframe ``kf``, made at depth instant ``time``, was placed by tracking at ``T_ref``
-        (4, 4) in keyframe ``reference`` (None: unlinked, nothing recorded)."""
+    def link(self, kf: int, reference: int | None, T_ref: Tensor | None) -> None:
+        """Keyframe ``kf`` was placed by tracking at ``T_ref`` (4, 4) in keyframe ``reference``
+        (None: unlinked, nothing recorded)."""
         if reference is not None and T_ref is not None:
-            self.links[kf] = (int(reference), T_ref.detach().to("cpu", torch.float64), float(time))
+            self.links[kf] = (int(reference), T_ref.detach().to("cpu", torch.float64))
 
     def poses(self, T_wk: Tensor, spread: bool = False) -> Tensor:
         """(N, 4, 4) float64 world poses of all frames from the (K, 4, 4) keyframe poses, at the depth instants.
@@ -93,9 +93,10 @@ class FrameLog:
         tracked against ``a`` alone, so ``T_wk[a] @ T_kf`` places it by ``a``'s correction only,
         while the optimisation (a loop, a link measured again) may have moved ``b`` otherwise
         relative to ``a``: the same frame reached through ``b``, ``T_wk[b] @ T_ref_b^-1 @ T_kf``,
-        differs by that change. The frame takes the geodesic between the two, at the fraction
-        ``(t - t_a) / (t_b - t_a)`` of its depth instant (its own axes, so a rotation turns it
-        about itself). Keyframes keep their poses (fraction 0); frames of the last keyframe, of
+        differs by that change. The frame takes the geodesic between the two, in its own axes (a
+        rotation turns it about itself), at the fraction ``(t - t_a) / (t_b - t_a)`` of its depth
+        instant, with ``t_a`` and ``t_b`` the keyframes' own instants (their first rows in the
+        log, where both must be). Keyframes keep their poses (fraction 0); frames of the last keyframe, of
         a keyframe whose successor was linked to another (a relocalisation) or unlinked, and
         keyframes the optimisation left as tracked are unchanged (the two ways agree).
         """
@@ -109,11 +110,11 @@ class FrameLog:
         kf_of = torch.tensor(self.kf[:n], dtype=torch.int64)
         T_kf = torch.stack(self.T_kf[:n]).to(T_wk)
         T = T_wk[kf_of.to(dev)] @ T_kf
-        # The keyframes a whose successor b = a + 1 was linked to a and that have a frame of their
-        # own in the log (the first row of a: the ids never decrease along it).
+        # The keyframes a whose successor b = a + 1 was linked to a, both with a frame of their own
+        # in the log (a keyframe's first row: the ids never decrease along it).
         first = torch.searchsorted(kf_of, torch.arange(K))
         logged = (first < len(kf_of)) & (kf_of[first.clamp(max=len(kf_of) - 1)] == torch.arange(K))
-        nxt = [a for a in range(K - 1) if bool(logged[a]) and self.links.get(a + 1, (None,))[0] == a]
+        nxt = [a for a in range(K - 1) if bool(logged[a] & logged[a + 1]) and self.links.get(a + 1, (None,))[0] == a]
         if not nxt:
             return T
         slot = torch.full((K,), -1, dtype=torch.int64)
@@ -121,8 +122,8 @@ class FrameLog:
         rows = (slot[kf_of] >= 0).nonzero().flatten()  # the frames to spread
         s = slot[kf_of[rows]]  # each one's keyframe among ``nxt``
         t_geom = torch.tensor(self.geom_time[:n], dtype=torch.float64)
-        t_a = t_geom[first[torch.tensor(nxt)]]
-        t_b = torch.tensor([self.links[a + 1][2] for a in nxt], dtype=torch.float64)
+        a_of = torch.tensor(nxt)
+        t_a, t_b = t_geom[first[a_of]], t_geom[first[a_of + 1]]
         T_ref_inv = se3_inverse(torch.stack([self.links[a + 1][1] for a in nxt])).to(T_wk)
         span = (t_b - t_a)[s]
         frac = torch.where(span > 0, (t_geom[rows] - t_a[s]) / torch.where(span > 0, span, 1.0), 0.0).clamp(0.0, 1.0)

@@ -22,10 +22,6 @@ import torch
 __all__ = ["dumps", "loads"]
 
 
-def _tensor(array) -> torch.Tensor:
-    return torch.from_numpy(array)
-
-
 class _Pickler(pickle.Pickler):
     def reducer_override(self, obj: Any):
         if type(obj) is not torch.Tensor or obj.device.type != "cpu" or obj.requires_grad or obj.is_sparse:
@@ -34,7 +30,7 @@ class _Pickler(pickle.Pickler):
             array = obj.detach().resolve_conj().resolve_neg().numpy()
         except (TypeError, RuntimeError):  # a dtype NumPy has not (bfloat16, ...): as pickle would
             return NotImplemented
-        return _tensor, (array,)
+        return torch.from_numpy, (array,)
 
 
 def dumps(obj: Any) -> bytes:

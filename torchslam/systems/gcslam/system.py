@@ -533,7 +533,7 @@ class GCSlam:
         if not self._worker.threaded:
             # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
             self._inline_s += time.perf_counter() - t_submit
-        self.frames.link(kid, reference, T_ref, frame.geometry_time)
+        self.frames.link(kid, reference, T_ref)
         if promote:
             self.frames.rebase_last(kid)
             self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
