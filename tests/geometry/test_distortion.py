@@ -10,6 +10,7 @@ from torchslam.geometry import (
     PinholeCamera,
     backproject_depth,
     distort_normalized,
+    distort_planes_with_jacobian,
     undistort_pixels,
     undistorted_rays,
 )
@@ -154,3 +155,22 @@ def test_undistort_pixels_host_path_matches_torch_bit_for_bit(monkeypatch):
         start = xd + 0.01 * torch.randn(xd.shape, generator=g, dtype=torch.float64)
         x, y = camera_module._newton_numpy(start[:, 0].numpy().copy(), start[:, 1].numpy().copy(), xd.numpy(), d, 2)
         assert torch.equal(torch.from_numpy(np.stack([x, y], -1)), camera_module._newton_torch(start, xd, d, 2))
+
+
+@pytest.mark.parametrize("cam", [FR1, FR2, RATIONAL], ids=["fr1", "fr2", "rational8"])
+@pytest.mark.parametrize("kind", ["tensor", "array"])
+def test_distortion_with_its_jacobian_equals_the_model_and_central_differences(cam, kind):
+    """The fused model and derivative: the forward model to round-off, the derivative against
+    central differences of ``distort_normalized`` (float64)."""
+    xy = (torch.rand(400, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) - 0.5) * 1.2
+    x, y = (xy[:, 0], xy[:, 1]) if kind == "tensor" else (xy[:, 0].numpy(), xy[:, 1].numpy())
+    xd, yd, j00, j01, j10, j11 = (torch.as_tensor(a) for a in distort_planes_with_jacobian(x, y, cam.distortion))
+    ref = distort_normalized(xy, cam.distortion)
+    torch.testing.assert_close(torch.stack([xd, yd], -1), ref, rtol=0, atol=1e-14)
+    h = 1e-6
+    for k, (da, db) in enumerate(((j00, j10), (j01, j11))):
+        e = torch.zeros(2, dtype=torch.float64)
+        e[k] = h
+        num = (distort_normalized(xy + e, cam.distortion) - distort_normalized(xy - e, cam.distortion)) / (2 * h)
+        torch.testing.assert_close(da, num[:, 0], rtol=0, atol=1e-7)
+        torch.testing.assert_close(db, num[:, 1], rtol=0, atol=1e-7)

@@ -51,10 +51,28 @@ def test_sparse_tracks_synthetic_translation_and_rotation(trajectory):
     assert out.metrics["tracking"]["lost_frames"] == 0
     # Every frame after the first was registered, each guided or redone by brute force.
     reg = out.metrics["registrations"]
-    assert set(reg) == {"guided", "fallback"} and reg["guided"] + reg["fallback"] >= 59 and reg["guided"] > 0, reg
+    assert set(reg) == {"guided", "fallback", "depth_refined"} and reg["guided"] + reg["fallback"] >= 59 and reg["guided"] > 0, reg
     assert len(out.keyframe_indices) >= 2
     # Exact geometry up to Kinect-like depth noise: millimetre-level drift over 2 s.
     assert a.stats["rmse"] < 0.01, a.stats
+
+
+def test_sparse_poses_refined_against_the_keyframe_depth_are_closer_frame_to_frame():
+    """``depth_refine_points``: every registration refined; the frame-to-frame error falls (the
+    ORB poses of a noisy-depth synthetic walk err by millimetres, the refined ones by less)."""
+    seq = generate_sequence(SyntheticConfig(frames=40, trajectory="handheld", seed=5, **SMALL))
+    rpe = {}
+    for n in (0, 3000):
+        result, _ = _run(seq, loops=False, depth_refine_points=n)
+        out = result.output
+        assert out.metrics["tracking"]["lost_frames"] == 0
+        refined = out.metrics["registrations"]["depth_refined"]
+        assert refined == 0 if n == 0 else refined >= 39, refined
+        T_gt = torch.stack([seq[int(i)].T_wc.to(torch.float64) for i in out.frame_indices])
+        rel = se3_inverse(out.T_wc[:-1]) @ out.T_wc[1:]
+        rel_gt = se3_inverse(T_gt[:-1]) @ T_gt[1:]
+        rpe[n] = float((se3_inverse(rel_gt) @ rel)[:, :3, 3].norm(dim=-1).pow(2).mean().sqrt())
+    assert rpe[3000] < 0.8 * rpe[0], rpe
 
 
 @pytest.mark.parametrize("fraction", [0.2, 0.0])
@@ -533,8 +551,9 @@ def test_a_weak_frame_promotes_the_previous_one_to_keyframe(monkeypatch, fronten
     monkeypatch.setattr(gc.GCSlam, "track", track)
     # ORB-measured pairs (keyframe_pairs=sparse): the promoted keyframe's pose is then its own
     # tracked registration's, which the assertions below compare; and the frames each posed by
-    # their own keyframe alone (spread_corrections off), so that the frames before stay.
-    kw = dict(frontend=frontend, loops=False, keyframe_pairs="sparse", spread_corrections=False)
+    # their own keyframe alone (spread_corrections off), so that the frames before stay; ORB
+    # poses as registered (depth_refine_points 0), whose optimum is the ORB pairs' own.
+    kw = dict(frontend=frontend, loops=False, keyframe_pairs="sparse", spread_corrections=False, depth_refine_points=0)
     off, a_off = _run(seq, keyframe_weak_ratio=0, **kw)
     seen.clear()
     on, a_on = _run(seq, keyframe_weak_ratio=0.5, **kw)

@@ -45,7 +45,7 @@ def test_prepared_frames_and_registrations_live_on_the_device():
             fe = s.frontend
             a = fe.prepare(f0.rgb.to(DEVICE), f0.depth.to(DEVICE), True, lambda stage: None)
             b = fe.prepare(f1.rgb.to(DEVICE), f1.depth.to(DEVICE), True, lambda stage: None)
-            target = type("Target", (), {"features": a.features, "dense": a.dense})()
+            target = type("Target", (), {"features": a.features, "dense": a.dense, "depth": a.depth})()
             reg = fe.register(target, b, torch.eye(4, dtype=torch.float64, device=DEVICE))
         assert audit.mixed == []
         assert is_on_device(a.features.points) and is_on_device(a.features.valid)

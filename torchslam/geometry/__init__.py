@@ -10,6 +10,7 @@ from .camera import (
     scale_intrinsics,
     undistort_pixels,
     undistorted_rays,
+    distort_planes_with_jacobian,
 )
 from .lie import (
     SMALL_ANGLE,
@@ -59,5 +60,6 @@ __all__ = [
     "umeyama_alignment",
     "undistort_pixels",
     "undistorted_rays",
+    "distort_planes_with_jacobian",
     "vex",
 ]

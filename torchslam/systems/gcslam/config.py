@@ -137,6 +137,14 @@ class GCSlamConfig:
             registration, i.e. the dense pose with the ORB pair's pull (README, "Densely measured
             loops weighted as their ORB registration"); ``"auto"``: ``orb`` with the dense
             front-end, ``correspondences`` with the sparse one.
+        depth_refine_points: sparse front-end (beyond the paper): each frame's ORB registration to
+            its keyframe is refined against the keyframe's depth image with the frame's depth
+            at a lattice of about this many pixels (DVO's geometric residual) together with the
+            ORB inliers (:func:`~torchslam.registration.depth_align.refine_with_depth`). 0: the
+            ORB pose as registered. Frame-to-frame error (RPE over one frame) was lower on every
+            real and synthetic sequence measured (TUM fr1/xyz 4.85 -> 3.63 mm); README, "Sparse
+            poses refined against the keyframe's depth". Chosen before measuring, not tuned.
+        depth_refine_iterations: Gauss-Newton steps of that refinement.
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -175,6 +183,8 @@ class GCSlamConfig:
     motion_prior_max_gap: float = 0.2
     keyframe_pairs: str = "auto"
     loop_pair_weight: str = "auto"
+    depth_refine_points: int = 3000
+    depth_refine_iterations: int = 3
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
@@ -183,7 +193,7 @@ class GCSlamConfig:
         "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
         "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
         "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
-        "motion_prior_max_gap": POSITIVE,
+        "motion_prior_max_gap": POSITIVE, "depth_refine_points": NON_NEGATIVE, "depth_refine_iterations": NON_NEGATIVE,
     }
 
     def __post_init__(self) -> None:

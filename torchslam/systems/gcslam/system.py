@@ -110,6 +110,7 @@ class _TrackKeyframe:
     dense: DenseFrame | None  # the dense pyramid of the current keyframe only (dense front-end); None for older ones
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
+    depth: Tensor | None = None  # (1, H, W) depth of the current keyframe (sparse front-end's depth refinement); None for older ones
 
 
 class GCSlam:
@@ -515,8 +516,10 @@ class GCSlam:
             self.counts["unlinked_keyframes"] += 1
         if self.keyframes:
             self.keyframes[-1].dense = None  # only the current keyframe is registered against densely
+            self.keyframes[-1].depth = None
         self.keyframes.append(
-            _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors)
+            _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors,
+                           depth if cfg.depth_refine_points > 0 else None)
         )
         images = None
         if cfg.dense_pairs:
