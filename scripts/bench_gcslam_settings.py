@@ -68,7 +68,9 @@ def run_case(case: dict, frontend: str, setting: str, workdir: Path, threads: in
     if done.returncode != 0:
         return dict(error=done.stderr.strip().splitlines()[-1] if done.stderr.strip() else f"exit {done.returncode}")
     m = json.loads((out / "metrics.json").read_text())
-    return dict(ate_cm=None if m.get("ate_rmse_m") is None else 100 * m["ate_rmse_m"], keyframes=m["keyframes"],
+    return dict(ate_cm=None if m.get("ate_rmse_m") is None else 100 * m["ate_rmse_m"],
+                rpe_mm=None if m.get("rpe_trans_rmse_m") is None else 1000 * m["rpe_trans_rmse_m"], rpe_delta=m.get("rpe_delta"),
+                keyframes=m["keyframes"],
                 loops=m["loops"]["accepted"], fps=m["fps_end_to_end"], tracking_failures=m["tracking"]["tracking_failures"])
 
 
@@ -117,7 +119,7 @@ def main() -> None:
                     res = run_case(case, fe, setting, tmp, args.threads)
                     row["runs"][fe][setting] = res
                     print(f"{case['split']:8s} {case['name']:40s} {fe:6s} {setting:32s} "
-                          + (f"ATE {res['ate_cm']:.3f} cm, {res['keyframes']} keyframes, {res['loops']} loops"
+                          + (f"ATE {res['ate_cm']:.3f} cm, RPE {res['rpe_mm'] or float('nan'):.2f} mm, {res['keyframes']} keyframes, {res['loops']} loops"
                              if res.get("ate_cm") is not None else res.get("error", "no ATE")), flush=True)
             rows.append(row)
     md = table(rows, settings, frontends)
