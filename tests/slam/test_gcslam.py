@@ -75,6 +75,19 @@ def test_sparse_poses_refined_against_the_keyframe_depth_are_closer_frame_to_fra
     assert rpe[3000] < 0.8 * rpe[0], rpe
 
 
+@pytest.mark.parametrize("frontend,points", [("sparse", 3000), ("sparse", 0), ("dense", 3000)])
+def test_only_the_current_keyframe_keeps_its_depth_and_only_where_it_is_read(frontend, points):
+    seq = generate_sequence(SyntheticConfig(frames=30, trajectory="translate", seed=1, **SMALL))
+    s = GCSlam(config_from_dict(GCSlamConfig, {"frontend": frontend, "depth_refine_points": points, "threaded": False}))
+    s.start(seq)
+    for f in seq:
+        s.track(f)
+    assert len(s.keyframes) >= 2
+    assert all(k.depth is None for k in s.keyframes[:-1])
+    assert (s.keyframes[-1].depth is not None) == (frontend == "sparse" and points > 0)
+    s.finish()
+
+
 @pytest.mark.parametrize("fraction", [0.2, 0.0])
 def test_sparse_guided_registration_with_few_of_the_keypoints_is_checked_by_brute_force(fraction):
     # 7.7 cm and 7.3 degrees between frames, each registration guided from the last pose (no

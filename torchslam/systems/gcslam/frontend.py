@@ -103,6 +103,11 @@ class TrackingFrontend:
 
     kind: ClassVar[Frontend]
 
+    @property
+    def uses_keyframe_depth(self) -> bool:
+        """Whether registrations read the keyframe's depth image (``RegistrationTarget.depth``)."""
+        return False
+
     def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
         """
         Args:
@@ -179,6 +184,10 @@ class SparseFrontend(TrackingFrontend):
                                     T_pred=T_guess.to(torch.float64)[None], focal=self.camera.fx)
         self.counts["guided" if bool(res.guided[0]) else "fallback"] += 1
         return Registration(bool(res.success[0]), self._with_depth(keyframe, frame, res), res, int(res.num_inliers[0]))
+
+    @property
+    def uses_keyframe_depth(self) -> bool:
+        return self.cfg.depth_refine_points > 0
 
     def _with_depth(self, keyframe: RegistrationTarget, frame: PreparedFrame, res: SparseResult) -> Tensor:
         """The registration's pose, refined against the keyframe's depth (``depth_refine_points``)."""

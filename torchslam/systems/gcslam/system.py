@@ -519,7 +519,7 @@ class GCSlam:
             self.keyframes[-1].depth = None
         self.keyframes.append(
             _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors,
-                           depth if cfg.depth_refine_points > 0 else None)
+                           depth if self.frontend.uses_keyframe_depth else None)
         )
         images = None
         if cfg.dense_pairs:
