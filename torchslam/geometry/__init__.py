@@ -5,12 +5,12 @@ from .camera import (
     PinholeCamera,
     backproject_depth,
     distort_normalized,
+    distort_planes_with_jacobian,
     intrinsics_matrix,
     project_points,
     scale_intrinsics,
     undistort_pixels,
     undistorted_rays,
-    distort_planes_with_jacobian,
 )
 from .lie import (
     SMALL_ANGLE,
@@ -37,6 +37,7 @@ __all__ = [
     "SMALL_ANGLE",
     "backproject_depth",
     "distort_normalized",
+    "distort_planes_with_jacobian",
     "intrinsics_matrix",
     "project_points",
     "quat_xyzw_slerp",
@@ -60,6 +61,5 @@ __all__ = [
     "umeyama_alignment",
     "undistort_pixels",
     "undistorted_rays",
-    "distort_planes_with_jacobian",
     "vex",
 ]

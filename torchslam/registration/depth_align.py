@@ -15,8 +15,9 @@ its own robust scale, 1.4826 times the median absolute residual (of the three co
 ORB kind), with the dense front-end's floors, and Huber-weighted (``k = 1.345``; on an ORB
 residual's norm ``k sqrt(3)``); one Gauss-Newton step on SE(3) (left update) is taken per
 iteration with both kinds in one system, the scales estimated again at every step (so the
-steps shrink by about half each: on TUM fr1/xyz the third moves a pose by 0.4 mm at the median). The depth residuals pin the directions a
-surface constrains; the ORB ones keep the rest (a plane alone leaves three directions free).
+steps shrink by about half each: on TUM fr1/xyz the third moves a pose by 0.4 mm at the
+median). The depth residuals pin the directions a surface constrains; the ORB ones keep the rest
+(a plane alone leaves three directions free).
 
 ``Z_i`` is sampled bilinearly where all four neighbours hold depth within
 ``depth_edge_tolerance`` of each other (the dense front-end's rule for a depth-smooth pixel) and
@@ -32,7 +33,7 @@ import torch
 from torch import Tensor
 
 from ..devices import numpy_viewable
-from ..geometry import PinholeCamera, distort_planes_with_jacobian, se3_exp, se3_exp_numpy
+from ..geometry import PinholeCamera, distort_planes_with_jacobian, se3_exp, se3_exp_numpy, skew
 
 __all__ = ["sample_depth_points", "refine_with_depth"]
 
@@ -149,7 +150,7 @@ def refine_with_depth(
         ok = ok & front & (rz.abs() < correspondence_threshold * zs)
         n_ok = int(ok.sum())
         if n_ok < min_points:
-            return T, 0 if used == 0 else used
+            return T, used
         used = n_ok
         inv_z = 1.0 / zs
         # d(x, y)/dq, then d(u, v)/dq through the distortion, then dZ_i/dq - e_z.
@@ -166,7 +167,8 @@ def refine_with_depth(
         g = (Jg * (wg / sg**2)[:, None]).T @ rg
         if len(oi):
             qo = oj @ R.T + t
-            ro = (qo - oi) * inv_zo[:, None]  # (M, 3)
+            r_raw = qo - oi  # (M, 3)
+            ro = r_raw * inv_zo[:, None]
             # Scale per component (1.4826 MAD of all three), Huber on the norm at k sqrt(3).
             so = max(float(ro.abs().median()) * _MAD, floor_orb)
             e = ro.norm(dim=-1) / so
@@ -177,12 +179,11 @@ def refine_with_depth(
             S1 = (c[:, None] * qo).sum(0)
             S2 = (c[:, None, None] * (qo[:, :, None] * qo[:, None, :])).sum(0)
             eye = torch.eye(3, dtype=torch.float64, device=T.device)
-            Sx = _skew(S1)
+            Sx = skew(S1)
             H[:3, :3] += S0 * eye
             H[:3, 3:] += -Sx
             H[3:, :3] += Sx
             H[3:, 3:] += torch.trace(S2) * eye - S2
-            r_raw = ro / inv_zo[:, None]  # (M, 3) unnormalised
             cr = c[:, None] * r_raw
             g[:3] += cr.sum(0)
             g[3:] += torch.linalg.cross(qo, cr).sum(0)
@@ -195,11 +196,6 @@ def refine_with_depth(
             return T, 0
         T = se3_exp(delta) @ T
     return T, used
-
-
-def _skew(w: Tensor) -> Tensor:
-    z = torch.zeros((), dtype=w.dtype, device=w.device)
-    return torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]), torch.stack([-w[1], w[0], z])])
 
 
 def _refine_numpy(

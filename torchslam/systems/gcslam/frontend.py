@@ -28,10 +28,9 @@ import torch
 from torch import Tensor
 
 from ...fastgo import PairStats
-from ...geometry import PinholeCamera
+from ...geometry import PinholeCamera, undistorted_rays
 from ...registration.dense import DenseFrame, DenseResult, prepare_dense_frame, register_dense_frames
 from ...registration.depth_align import refine_with_depth, sample_depth_points
-from ...geometry import undistorted_rays
 from ...registration.sparse import FrameFeatures, SparseResult, frame_features, register_sparse, register_sparse_batch
 from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
 from .config import Frontend, GCSlamConfig
@@ -167,7 +166,7 @@ class SparseFrontend(TrackingFrontend):
     def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
         super().__init__(cfg, camera, rays, generator)
         self.counts = {"guided": 0, "fallback": 0, "depth_refined": 0}
-        self._all_rays: Tensor | None = None
+        self._pixel_rays: Tensor | None = None
 
     def prepare(self, rgb: Tensor, depth: Tensor, keyframe: bool, lap: Callable[[str], None]) -> PreparedFrame:
         frame = PreparedFrame(rgb, depth)
@@ -193,11 +192,11 @@ class SparseFrontend(TrackingFrontend):
         """The registration's pose, refined against the keyframe's depth (``depth_refine_points``)."""
         T = res.T_ij[0]
         n = self.cfg.depth_refine_points
-        if n <= 0 or not bool(res.success[0]) or getattr(keyframe, "depth", None) is None:
+        if n <= 0 or not bool(res.success[0]) or keyframe.depth is None:
             return T
-        if self._all_rays is None:
-            self._all_rays = self.rays if self.rays is not None else undistorted_rays(self.camera, device=frame.depth.device)
-        pts = sample_depth_points(frame.depth, self._all_rays, n, self.cfg.sparse.min_depth, self.cfg.sparse.max_depth)
+        if self._pixel_rays is None:  # a distorted camera's are the front-end's; a pinhole camera's made once
+            self._pixel_rays = self.rays if self.rays is not None else undistorted_rays(self.camera, device=frame.depth.device)
+        pts = sample_depth_points(frame.depth, self._pixel_rays, n, self.cfg.sparse.min_depth, self.cfg.sparse.max_depth)
         T2, used = refine_with_depth(T, keyframe.depth, self.camera, pts, res.points_i[0], res.points_j[0], res.inliers[0],
                                      self.cfg.depth_refine_iterations, self.cfg.dense.depth_edge_tolerance,
                                      self.cfg.dense.correspondence_threshold, self.cfg.dense.sigma_floor_geometric)
