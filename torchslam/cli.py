@@ -281,10 +281,13 @@ def _add_synth(sub) -> None:
     p.add_argument("--width", type=int, default=None)
     p.add_argument("--height", type=int, default=None)
     p.add_argument("--no-noise", action="store_true", help="exact depth (no Kinect-like noise or holes)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other setting of the generator, e.g. --set period=3.4 --set exposure=0.01 (repeatable; "
+                   "applied after the flags above)")
 
 
 def _cmd_synth(args) -> int:
-    from .config import config_from_dict
+    from .config import config_from_dict, deep_merge, parse_overrides
     from .data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
     from .threads import setup_threads
 
@@ -295,6 +298,7 @@ def _cmd_synth(args) -> int:
             changes[key] = getattr(args, key)
     if args.no_noise:
         changes["depth_noise"] = False
+    changes = deep_merge(changes, parse_overrides(args.overrides))
     cfg = config_from_dict(SyntheticConfig, changes, source="torchslam synth")
     seq = generate_sequence(cfg)
     write_tum_folder(seq, args.out, overwrite=args.overwrite)

@@ -61,6 +61,8 @@ def _small(**kw) -> SyntheticConfig:
         ("max_depth", 20.0),
         ("depth_noise", "yes"),
         ("texture_density", 5000.0),
+        ("exposure", -0.01),
+        ("exposure_samples", 1),
     ],
 )
 def test_bad_config_names_the_key(key, value):
@@ -161,6 +163,34 @@ def test_rendering_is_deterministic_and_batch_independent():
     rgb_c, depth_c = c.render(range(6))
     assert not torch.equal(rgb_a, rgb_c)
     assert (depth_a != depth_c).float().mean() > 0.5
+
+
+def test_exposure_blur_is_the_mean_of_renders_over_the_exposure():
+    """Oracle: the blurred colour equals renders at the sub-instants, averaged; depth and pose stay sharp."""
+    cfg = _small(frames=4, trajectory="loop", period=3.4, exposure=0.02, exposure_samples=3)
+    seq, sharp = generate_sequence(cfg), generate_sequence(dataclasses.replace(cfg, exposure=0.0))
+    rgb, depth = seq.render([1, 3])
+    rgb0, depth0 = sharp.render([1, 3])
+    assert torch.equal(depth, depth0)
+    assert torch.equal(seq.groundtruth.T_wc, sharp.groundtruth.T_wc)
+    pose = synthetic_trajectory(cfg)
+    ref = torch.zeros_like(rgb)
+    for dt in (-0.01, 0.0, 0.01):
+        R, p = pose(seq.timestamps[[1, 3]] + dt)
+        T = torch.eye(4, dtype=F64).repeat(2, 1, 1)
+        T[:, :3, :3], T[:, :3, 3] = R, p
+        ref += seq.renderer.render(T).rgb
+    assert torch.allclose(rgb, ref / 3, atol=1e-6)
+    # The middle sample is the sharp frame itself, and at this speed (8 cm per frame) blur moves the image.
+    assert (rgb - rgb0).abs().mean() > 0.01
+    assert torch.equal(seq[3].rgb, rgb[1])  # indexing renders (and blurs) the same
+
+
+def test_exposure_of_a_still_camera_changes_nothing():
+    cfg = _small(frames=2, trajectory="orbit", period=1e9, exposure=0.05, exposure_samples=4)
+    rgb, _ = generate_sequence(cfg).render([0, 1])
+    rgb0, _ = generate_sequence(dataclasses.replace(cfg, exposure=0.0)).render([0, 1])
+    assert torch.allclose(rgb, rgb0, atol=1e-5)  # four float32 renders summed and divided
 
 
 def test_renderer_chunking_does_not_change_images():

@@ -80,6 +80,11 @@ class SyntheticConfig:
         attitude_time_constant: tilt-correction time constant of the attitude filter, seconds.
         texture_density: texels per metre of the surface textures.
         batch_size: frames rendered together when iterating or writing.
+        exposure: the colour camera's exposure time, seconds (0: none, sharp images). A frame's
+            colour is the mean of ``exposure_samples`` renders at instants spread evenly over
+            ``[t - exposure / 2, t + exposure / 2]`` along the trajectory (motion blur); its
+            depth and ground-truth pose stay those of the frame time ``t``.
+        exposure_samples: renders averaged per frame when ``exposure > 0`` (at least 2).
     """
 
     frames: int = 300
@@ -104,13 +109,16 @@ class SyntheticConfig:
     attitude_time_constant: float = 10.0
     texture_density: float = 128.0
     batch_size: int = 8
+    exposure: float = 0.0
+    exposure_samples: int = 8
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "frames": AT_LEAST_1, "width": AT_LEAST_1, "height": AT_LEAST_1, "fps": POSITIVE, "seed": Limit(),
         "period": POSITIVE, "fx": POSITIVE, "fy": POSITIVE, "cx": Limit(), "cy": Limit(), "depth_noise_k": NON_NEGATIVE,
         "depth_holes": Limit(ge=0, lt=1), "depth_scale": Limit(ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1]),
         "max_depth": POSITIVE, "imu_rate": POSITIVE, "gravity": POSITIVE, "attitude_time_constant": Limit(gt=0, allow_inf=True),
-        "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1,
+        "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1, "exposure": NON_NEGATIVE,
+        "exposure_samples": Limit(ge=2),
     }
     # Config keys of earlier releases, read as the nested fields they became.
     ALIASES: ClassVar[dict[str, str]] = {f.name: f"imu_noise.{f.name}" for f in fields(ImuNoise)}
@@ -199,7 +207,7 @@ class SyntheticSequence(Sequence):
         self.name = f"synthetic-{cfg.trajectory}-seed{cfg.seed}"
         self.camera = camera_from_config(cfg)
         self.timestamps = torch.arange(cfg.frames, dtype=torch.float64) / cfg.fps
-        pose = synthetic_trajectory(cfg)
+        pose = self._pose = synthetic_trajectory(cfg)
         R, p = pose(self.timestamps)
         self.groundtruth = Trajectory(self.timestamps, se3_from_Rt(R, p))
         self.gravity_w = torch.tensor([0.0, 0.0, -cfg.gravity], dtype=torch.float64)
@@ -226,8 +234,8 @@ class SyntheticSequence(Sequence):
             indices: (B,) frame indices.
 
         Returns:
-            rgb: (B, 3, H, W) float32 in [0, 1]; depth: (B, 1, H, W) float32 metres, 0 = invalid
-            (noisy if ``cfg.depth_noise``).
+            rgb: (B, 3, H, W) float32 in [0, 1] (motion-blurred over ``cfg.exposure``); depth:
+            (B, 1, H, W) float32 metres, 0 = invalid (noisy if ``cfg.depth_noise``).
         """
         idx = torch.as_tensor(list(indices) if not isinstance(indices, Tensor) else indices, dtype=torch.int64)
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= len(self)):
@@ -235,6 +243,7 @@ class SyntheticSequence(Sequence):
         out = self.renderer.render(self.groundtruth.T_wc[idx])
         depth = out.depth
         cfg = self.cfg
+        rgb = out.rgb if cfg.exposure <= 0 or not idx.numel() else self._exposed(idx)
         if cfg.depth_noise:
             # One generator per frame so noise does not depend on how frames were batched.
             depth = torch.stack(
@@ -252,7 +261,19 @@ class SyntheticSequence(Sequence):
             ) if idx.numel() else depth
         else:
             depth = torch.where(depth <= cfg.max_depth, depth, torch.zeros_like(depth))
-        return out.rgb, depth
+        return rgb, depth
+
+    def _exposed(self, idx: Tensor) -> Tensor:
+        """(B, 3, H, W) colour of frames ``idx`` averaged over their exposure (``cfg.exposure``)."""
+        cfg = self.cfg
+        n = cfg.exposure_samples
+        rgb = None
+        for k in range(n):  # one render of the whole batch per instant of the exposure
+            t = self.timestamps[idx] + cfg.exposure * (k / (n - 1) - 0.5)
+            R, p = self._pose(t)
+            sub = self.renderer.render(se3_from_Rt(R, p)).rgb
+            rgb = sub if rgb is None else rgb.add_(sub)
+        return rgb.div_(n)
 
     def _frame(self, i: int, rgb: Tensor, depth: Tensor) -> Frame:
         return Frame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, T_wc=self.groundtruth.T_wc[i])
