@@ -368,23 +368,23 @@ def test_auto_backend_is_decided_at_the_large_probe_and_skips_it_when_hopeless(m
 
     if not matching._INT8_GEMM:
         pytest.skip("this torch build has no int8 GEMM on the CPU")
-    int8, opencv = matching._match_int8, matching._match_opencv
+    # The fakes burn only the modelled CPU time and match nothing (the probe discards the
+    # matches): the real kernels' own time, 60 x apart on an AVX2-only CPU, is not the model's.
     sizes = []
 
     def int8_fixed(d1, d2, *args):
         sizes.append(d1.shape[0])
         _spin(0.002 + 0.0005 * d1.shape[0] * d2.shape[0] / 1e6)
-        return int8(d1, d2, *args)
 
     monkeypatch.setattr(matching, "_cpu_auto", None)
     monkeypatch.setattr(matching, "_match_int8", int8_fixed)
-    monkeypatch.setattr(matching, "_match_opencv", _sized(opencv, 0.005))
+    monkeypatch.setattr(matching, "_match_opencv", _sized(lambda *args: None, 0.005))
     assert matching.cpu_auto_backend() is matching.MatchBackend.INT8
     assert sorted(set(sizes)) == [matching._PROBE_DESCRIPTORS, matching._PROBE_DESCRIPTORS_LARGE]
     # Far slower at the small size (an AVX2-only CPU): never timed at the large one.
     sizes.clear()
     monkeypatch.setattr(matching, "_cpu_auto", None)
-    monkeypatch.setattr(matching, "_match_int8", _sized(lambda *a: (sizes.append(a[0].shape[0]), int8(*a))[1], 0.5))
+    monkeypatch.setattr(matching, "_match_int8", _sized(lambda *a: sizes.append(a[0].shape[0]), 0.5))
     assert matching.cpu_auto_backend() is matching.MatchBackend.OPENCV
     assert set(sizes) == {matching._PROBE_DESCRIPTORS}
 

@@ -116,9 +116,25 @@ def test_empty_image_gives_empty_tensors():
 def test_fewer_features_and_fast_threshold_are_honoured(tum_frames):
     few = extract_orb(tum_frames[0], ORBConfig(n_features=100))
     assert 0 < len(few) <= 100
-    strict = extract_orb(tum_frames[0], ORBConfig(n_features=5000, fast_threshold=60))
-    loose = extract_orb(tum_frames[0], ORBConfig(n_features=5000, fast_threshold=10))
+    strict = extract_orb(tum_frames[0], ORBConfig(n_features=5000, fast_threshold=60, min_fast_threshold=60))
+    loose = extract_orb(tum_frames[0], ORBConfig(n_features=5000, fast_threshold=10, min_fast_threshold=10))
     assert len(strict) < len(loose)
+
+
+def test_low_contrast_image_is_detected_again_at_the_lower_threshold(tum_frames):
+    """Oracle: OpenCV's ORB at ``min_fast_threshold`` on the same grey image."""
+    dull = tum_frames[0] * 0.12 + 0.4  # a tenth of the contrast: FAST at 20 keeps few corners
+    grey = rgb_to_grey_u8(dull[None])[0].numpy()
+    at20 = cv2.ORB_create(nfeatures=2000, fastThreshold=20).detect(grey, None)
+    kps, desc = cv2.ORB_create(nfeatures=2000, fastThreshold=7).detectAndCompute(grey, None)
+    assert len(at20) < 200 < len(kps)  # below a tenth of the 2000 features asked for
+    f = extract_orb(dull)
+    assert np.array_equal(f.keypoints.numpy(), np.array([k.pt for k in kps], dtype=np.float32))
+    assert np.array_equal(f.descriptors.numpy(), desc)
+    # Off: the lower threshold not below fast_threshold, or no share low enough to ask for it.
+    assert len(extract_orb(dull, ORBConfig(min_fast_threshold=20))) == len(at20)
+    assert len(extract_orb(dull, ORBConfig(retry_below=len(at20) / 2000))) == len(at20)
+    assert len(extract_orb(dull, ORBConfig(retry_below=(len(at20) + 1) / 2000))) == len(kps)
 
 
 def test_bad_input_raises():
@@ -137,6 +153,10 @@ def test_bad_input_raises():
         ORBConfig(score_type="sobel")
     with pytest.raises(ConfigError, match="n_features"):
         ORBConfig(n_features=0)
+    with pytest.raises(ConfigError, match="min_fast_threshold"):
+        ORBConfig(min_fast_threshold=-1)
+    with pytest.raises(ConfigError, match="retry_below"):
+        ORBConfig(retry_below=1.5)
 
 
 def test_config_from_yaml_mapping():

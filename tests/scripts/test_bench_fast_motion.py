@@ -22,3 +22,15 @@ def test_bad_strides_name_the_item(item, says):
 def test_unknown_system_is_refused_by_name():
     with pytest.raises(SystemExit, match="orbslam"):
         bench.system_by_name("orbslam")
+
+
+def test_blur_cases_and_their_split():
+    assert bench._blur_cases(["7:0.02", "107:0"]) == [(7, 0.02), (107, 0.0)]
+    assert [bench._split(n) for n in ("fast-walk-7-exposure0.02", "fast-walk-107-exposure0", "hololens_dvmvs", "tum_fr1_xyz")] == [
+        "tuning", "held-out", "held-out", "tuning"]
+
+
+@pytest.mark.parametrize("item", ["7", "seven:0.02", "7:-0.01"])
+def test_bad_blur_cases_name_the_item(item):
+    with pytest.raises(SystemExit, match="SEED:EXPOSURE"):
+        bench._blur_cases([item])

@@ -56,6 +56,14 @@ class ORBConfig:
         score_type: keypoint ranking.
         patch_size: BRIEF patch size in pixels.
         fast_threshold: FAST intensity threshold in grey levels (0..255).
+        min_fast_threshold: the lower FAST threshold of a low-contrast image (strong motion blur,
+            dim light): an image with fewer than ``retry_below * n_features`` keypoints at
+            ``fast_threshold`` is detected again at this one, and that result is kept (ORB-SLAM's
+            extractor lowers its threshold from 20 to 7 the same way, per image cell). At or above
+            ``fast_threshold`` it is off.
+        retry_below: the share of ``n_features`` below which an image is detected again: a tenth,
+            too few corners to register a frame by (README, "Blurred frames detected again");
+            an image with more keeps its corners at ``fast_threshold``.
     """
 
     n_features: int = 2000
@@ -67,10 +75,13 @@ class ORBConfig:
     score_type: ORBScore = ORBScore.HARRIS
     patch_size: int = 31
     fast_threshold: int = 20
+    min_fast_threshold: int = 7
+    retry_below: float = 0.1
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "n_features": AT_LEAST_1, "scale_factor": Limit(gt=1), "n_levels": AT_LEAST_1, "edge_threshold": NON_NEGATIVE,
         "first_level": NON_NEGATIVE, "wta_k": Limit(ge=2, le=2), "patch_size": Limit(ge=2), "fast_threshold": Limit(ge=0, le=255),
+        "min_fast_threshold": Limit(ge=0, le=255), "retry_below": Limit(ge=0, le=1),
     }
 
     def __post_init__(self) -> None:
@@ -128,7 +139,7 @@ def rgb_to_grey_u8(rgb: Tensor) -> Tensor:
     return (grey * 255.0).round_().clamp_(0, 255).to(torch.uint8)
 
 
-def _make_orb(cfg: ORBConfig):
+def _make_orb(cfg: ORBConfig, fast_threshold: int | None = None):
     score = cv2.ORB_HARRIS_SCORE if cfg.score_type is ORBScore.HARRIS else cv2.ORB_FAST_SCORE
     return cv2.ORB_create(
         nfeatures=cfg.n_features,
@@ -139,7 +150,7 @@ def _make_orb(cfg: ORBConfig):
         WTA_K=cfg.wta_k,
         scoreType=score,
         patchSize=cfg.patch_size,
-        fastThreshold=cfg.fast_threshold,
+        fastThreshold=cfg.fast_threshold if fast_threshold is None else fast_threshold,
     )
 
 
@@ -193,10 +204,16 @@ def extract_orb(rgb: Tensor, cfg: ORBConfig | None = None) -> Features | list[Fe
     single = rgb.dim() == 3
     batch = rgb.unsqueeze(0) if single else rgb
     grey = rgb_to_grey_u8(batch.detach()).cpu().numpy()  # (B, H, W) uint8
-    orb = _make_orb(cfg)
+    orb, low = _make_orb(cfg), None
+    retry = cfg.min_fast_threshold < cfg.fast_threshold
     out = []
     for img in grey:
-        kps, desc = orb.detectAndCompute(np.ascontiguousarray(img), None)
+        img = np.ascontiguousarray(img)
+        kps, desc = orb.detectAndCompute(img, None)
+        if retry and len(kps) < cfg.retry_below * cfg.n_features:
+            # Low contrast (blur, dim light): FAST at the lower threshold finds the corners again.
+            low = _make_orb(cfg, cfg.min_fast_threshold) if low is None else low
+            kps, desc = low.detectAndCompute(img, None)
         out.append(_features_from_cv(kps, desc, rgb.device))
     logger.debug("extract_orb: %s keypoints", [len(f) for f in out])
     return out[0] if single else out

@@ -36,6 +36,11 @@ class GCSlamConfig:
         orb_features: ORB features per frame (released code: 2000).
         orb_scale: ORB pyramid scale factor (1.2).
         orb_levels: ORB pyramid levels (8).
+        orb_min_fast_threshold: FAST threshold of a starved frame (strong motion blur, dim
+            light): one with fewer than a tenth of ``orb_features`` keypoints at OpenCV's threshold
+            of 20 is detected again at this one (ORB-SLAM's 7; torchslam's, beyond the paper; 20
+            or more: off). ``features.ORBConfig.min_fast_threshold``; README, "Blurred frames
+            detected again".
         sparse: sparse registration settings (isometry filter, RANSAC, refinement).
         dense: dense registration settings (320x240 pyramid).
         keyframe_displacement: a frame becomes a keyframe when the keyframe's points move by
@@ -151,6 +156,7 @@ class GCSlamConfig:
     orb_features: int = 2000
     orb_scale: float = 1.2
     orb_levels: int = 8
+    orb_min_fast_threshold: int = 7
     sparse: SparseConfig = field(default_factory=SparseConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
     keyframe_displacement: float = 0.1
@@ -187,7 +193,8 @@ class GCSlamConfig:
     depth_refine_iterations: int = 3
 
     LIMITS: ClassVar[dict[str, Limit]] = {
-        "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "keyframe_displacement": POSITIVE,
+        "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "orb_min_fast_threshold": Limit(ge=0, le=255),
+        "keyframe_displacement": POSITIVE,
         "keyframe_weak_ratio": Limit(ge=0, lt=1), "dense_orb_start_residual": NON_NEGATIVE,
         "keyframe_sample_stride": AT_LEAST_1, "fastgo_iterations": AT_LEAST_1, "loop_iterations": AT_LEAST_1,
         "loop_threshold": NON_NEGATIVE, "loop_slack_m": NON_NEGATIVE, "final_iterations": NON_NEGATIVE,
@@ -224,4 +231,5 @@ class GCSlamConfig:
 
     def orb(self) -> ORBConfig:
         """The ORB extractor's settings."""
-        return ORBConfig(n_features=self.orb_features, scale_factor=self.orb_scale, n_levels=self.orb_levels)
+        return ORBConfig(n_features=self.orb_features, scale_factor=self.orb_scale, n_levels=self.orb_levels,
+                         min_fast_threshold=self.orb_min_fast_threshold)
