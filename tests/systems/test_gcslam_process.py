@@ -41,9 +41,10 @@ def _run(seq, monitor=None, **cfg):
 def test_process_thread_and_inline_give_the_same_trajectory_and_loops():
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, **SMALL))
     monitor = _Recorder()
-    proc = _run(seq, monitor=monitor, threaded=True, background="process")
-    thread = _run(seq, threaded=True, background="thread")
-    inline = _run(seq, threaded=False)
+    few = {"mild": {"top_k": 1}}  # one loop candidate per keyframe (about 50 loops here): the suite's time
+    proc = _run(seq, monitor=monitor, threaded=True, background="process", **few)
+    thread = _run(seq, threaded=True, background="thread", **few)
+    inline = _run(seq, threaded=False, **few)
     assert (proc.metrics["background"], thread.metrics["background"], inline.metrics["background"]) == ("process", "thread", "inline")
     assert proc.metrics["loops"]["accepted"] >= 1
     for other in (thread, inline):

@@ -10,6 +10,7 @@ from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
 from torchslam.geometry import se3_exp, se3_inverse, so3_exp, so3_log
+from torchslam.systems.monitor import Monitor
 from torchslam.systems.nislam import AcceptanceCovariance, LoopConfig, NISlam, NISlamConfig
 from torchslam.systems.nislam.system import _Keyframe
 
@@ -127,16 +128,31 @@ class _Planting(NISlam):
         return super()._try_loop(j_old, k_new, T_jk, variance, window, rotation_cov)
 
 
+class _Recorder(Monitor):
+    def __init__(self) -> None:
+        self.values: dict[str, list[float]] = {}
+
+    def scalar(self, tag, value, step) -> None:
+        self.values.setdefault(tag, []).append(value)
+
+
 def test_synthetic_revisit_accepts_the_true_loop_rejects_the_planted_one():
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))  # a revisit before the end
     for attitude in ("groundtruth", "simulated"):
-        system = _Planting(config_from_dict(NISlamConfig, {"attitude": attitude}))
+        monitor = _Recorder()
+        system = _Planting(config_from_dict(NISlamConfig, {"attitude": attitude}), monitor=monitor)
         result, a_loop = run_with_ate(system, seq)  # the ATE drop itself: test_nislam's loop test
         loops = result.output.metrics["loops"]
         assert system.planted and not any(system.planted), attitude
         assert loops["rejected_by_chi2"] == len(system.planted)
         assert loops["accepted"] >= 1 and loops["rejected_by_odometry"] == 0
         assert a_loop.stats["rmse"] < 0.01
+        # Every loop trial logs its chi-square increase over the threshold (above 1: rejected).
+        ratios = monitor.values["optimization/loop_chi2"]
+        tests = result.output.metrics["loop_tests"]
+        assert len(ratios) == len(tests) >= 2  # the planted loop and the true one
+        assert ratios == pytest.approx([t["chi2_increase"] / t["threshold"] for t in tests])
+        assert sum(r > 1 for r in ratios) == loops["rejected_by_chi2"] >= 1
 
 
 def test_local_window_edge_moves_only_the_window():
@@ -155,27 +171,6 @@ def test_local_window_edge_moves_only_the_window():
     wrong[:3, 3] += torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64)
     assert not system._try_loop(n - 4, n - 1, wrong, sharp, window=lo)
     assert system.local["rejected_by_chi2"] == 1
-
-
-def test_loop_trials_log_their_chi_square_ratio():
-    from torchslam.systems.monitor import Monitor
-
-    class Recorder(Monitor):
-        def __init__(self) -> None:
-            self.values: dict[str, list[float]] = {}
-
-        def scalar(self, tag, value, step) -> None:
-            self.values.setdefault(tag, []).append(value)
-
-    seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
-    monitor = Recorder()
-    system = _Planting(config_from_dict(NISlamConfig, {"attitude": "groundtruth"}), monitor=monitor)
-    result, _ = run_with_ate(system, seq)
-    ratios = monitor.values["optimization/loop_chi2"]
-    tests = result.output.metrics["loop_tests"]
-    assert len(ratios) == len(tests) >= 2  # the planted loop and the true one
-    assert ratios == pytest.approx([t["chi2_increase"] / t["threshold"] for t in tests])
-    assert sum(r > 1 for r in ratios) == result.output.metrics["loops"]["rejected_by_chi2"] >= 1
 
 
 def _frame(index: int, dt: float = 1 / 30):
