@@ -52,10 +52,13 @@ def _strides(items: list[str]) -> list[tuple[str, int]]:
     return cases
 
 
-def _split(sequence: str) -> str:
-    """``held-out`` for HoloLens and the synthetic seeds from 100, else ``tuning``."""
-    if sequence.startswith("fast-walk-"):
-        return "tuning" if int(sequence.split("-")[2]) < 100 else "held-out"
+def _seed_split(seed: int) -> str:
+    """A synthetic seed's split: ``tuning`` below 100, ``held-out`` from 100."""
+    return "tuning" if seed < 100 else "held-out"
+
+
+def _real_split(sequence: str) -> str:
+    """A shipped sequence's split: HoloLens is held out."""
     return "held-out" if sequence.startswith("hololens") else "tuning"
 
 
@@ -72,16 +75,16 @@ def _blur_cases(items: list[str]) -> list[tuple[int, float]]:
     return cases
 
 
-def _blurred_walks(cases: list[tuple[int, float]], folder: Path) -> list[tuple[str, Path]]:
-    """Render each fast walk once to a TUM folder under ``folder``."""
+def _blurred_walks(cases: list[tuple[int, float]], folder: Path) -> list[tuple[str, str, Path, int]]:
+    """Render each fast walk once to a TUM folder under ``folder``: ``(name, split, folder, stride 1)``."""
     out = []
     for seed, exposure in cases:
         cfg = SyntheticConfig(seed=seed, exposure=exposure, **FAST_WALK)
-        name = f"fast-walk-{seed}-exposure{exposure:g}"
+        name, split = f"fast-walk-{seed}-exposure{exposure:g}", _seed_split(seed)
         t0 = time.perf_counter()
         write_tum_folder(generate_sequence(cfg), folder / name)
-        print(f"  rendered {name} ({'tuning' if seed < 100 else 'held-out'}) in {time.perf_counter() - t0:.0f} s", flush=True)
-        out.append((name, folder / name))
+        print(f"  rendered {name} ({split}) in {time.perf_counter() - t0:.0f} s", flush=True)
+        out.append((name, split, folder / name, 1))
     return out
 
 
@@ -108,11 +111,11 @@ def main() -> None:
         if not (root / seq_name / "rgb.txt").is_file():
             print(f"  {seq_name}: not under {root}, skipped")
             continue
-        cases.append((seq_name, root / seq_name, stride))
+        cases.append((seq_name, _real_split(seq_name), root / seq_name, stride))
     tmp = tempfile.TemporaryDirectory(prefix="torchslam-fast-walk-")
-    cases += [(name, folder, 1) for name, folder in _blurred_walks(blur, Path(tmp.name))]
+    cases += _blurred_walks(blur, Path(tmp.name))
     rows = []
-    for seq_name, folder, stride in cases:
+    for seq_name, split, folder, stride in cases:
         for name in systems:
             seq = TUMSequence(folder, stride=stride, prefetch=2)
             t0 = time.perf_counter()
@@ -122,7 +125,7 @@ def main() -> None:
             err = ate_cm(out, seq)
             track = out.metrics.get("tracking", {})
             row = {
-                "sequence": seq_name, "split": _split(seq_name), "stride": stride, "system": name, "frames": res.frames_processed,
+                "sequence": seq_name, "split": split, "stride": stride, "system": name, "frames": res.frames_processed,
                 "keyframes": len(out.keyframe_indices), "ate_rmse_cm": err,
                 "tracking_failures": track.get("tracking_failures"), "lost_frames": track.get("lost_frames"),
                 "prior_frames": 0 if out.prior_indices is None else len(out.prior_indices), "fps_end_to_end": res.fps_end_to_end, "wall_s": wall,

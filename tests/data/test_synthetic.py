@@ -30,7 +30,7 @@ from torchslam.data.synthetic import (
     synthetic_trajectory,
 )
 from torchslam.errors import ConfigError
-from torchslam.geometry import backproject_depth, project_points, se3_act, se3_inverse, so3_log
+from torchslam.geometry import backproject_depth, project_points, se3_act, se3_from_Rt, se3_inverse, so3_log
 from torchslam.imu import AttitudeStream, ImuNoise, attitude_errors, integrate_gyro
 
 F64 = torch.float64
@@ -176,10 +176,7 @@ def test_exposure_blur_is_the_mean_of_renders_over_the_exposure():
     pose = synthetic_trajectory(cfg)
     ref = torch.zeros_like(rgb)
     for dt in (-0.01, 0.0, 0.01):
-        R, p = pose(seq.timestamps[[1, 3]] + dt)
-        T = torch.eye(4, dtype=F64).repeat(2, 1, 1)
-        T[:, :3, :3], T[:, :3, 3] = R, p
-        ref += seq.renderer.render(T).rgb
+        ref += seq.renderer.render(se3_from_Rt(*pose(seq.timestamps[[1, 3]] + dt))).rgb
     assert torch.allclose(rgb, ref / 3, atol=1e-6)
     # The middle sample is the sharp frame itself, and at this speed (8 cm per frame) blur moves the image.
     assert (rgb - rgb0).abs().mean() > 0.01

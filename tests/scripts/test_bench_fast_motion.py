@@ -26,8 +26,8 @@ def test_unknown_system_is_refused_by_name():
 
 def test_blur_cases_and_their_split():
     assert bench._blur_cases(["7:0.02", "107:0"]) == [(7, 0.02), (107, 0.0)]
-    assert [bench._split(n) for n in ("fast-walk-7-exposure0.02", "fast-walk-107-exposure0", "hololens_dvmvs", "tum_fr1_xyz")] == [
-        "tuning", "held-out", "held-out", "tuning"]
+    assert [bench._seed_split(s) for s in (7, 99, 100, 107)] == ["tuning", "tuning", "held-out", "held-out"]
+    assert [bench._real_split(n) for n in ("hololens_dvmvs", "tum_fr1_xyz", "7scenes_redkitchen")] == ["held-out", "tuning", "tuning"]
 
 
 @pytest.mark.parametrize("item", ["7", "seven:0.02", "7:-0.01"])
