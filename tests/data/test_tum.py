@@ -718,6 +718,52 @@ def test_imu_start_attitude_comes_from_a_z_up_ground_truth_only(tmp_path, caplog
     np.testing.assert_allclose(up[:, 1].numpy(), [0.0, 0.0, -1.0], atol=1e-6)  # levelled by gravity instead
 
 
+def test_imu_start_attitude_from_ground_truth_when_the_stream_starts_accelerating(tmp_path, caplog):
+    # The camera (still upright, 40 degrees of heading) swings along world y at 6 m/s^2 from the
+    # swing's peak: its first 0.1 s of specific force shows an up 31 degrees off +z, more than the
+    # 20 allowed, but its first seconds, whole swings, show gravity's. The z-up ground truth starts
+    # the filter, as it did before the stream moved.
+    times = _times(4)
+    R_wc = Rotation.from_euler("z", 40, degrees=True).as_matrix() @ _R_UPRIGHT
+    q = Rotation.from_matrix(R_wc).as_quat()
+    gt = "".join(f"{t:.6f} 0 0 0 " + " ".join(f"{v:.9f}" for v in q) + "\n" for t in [99.85, 99.95, *times])
+    root = tmp_path / "swing"
+    _write_seq(root, times, gt=gt)
+    imu_t = [round(99.9 + k * 0.005, 6) for k in range(1201)]  # 6 s, 3 swings
+    lines = []
+    for t in imu_t:
+        f = R_wc.T @ np.array([0.0, 6.0 * math.cos(math.pi * (t - 99.9)), G])
+        lines.append(f"{t:.6f} 0 0 0 {f[0]:.9f} {f[1]:.9f} {f[2]:.9f}\n")
+    _write_imu(root, "".join(lines))
+    with caplog.at_level(logging.WARNING, logger="torchslam.data.tum"):
+        seq = TUMSequence(root)
+    assert "not z-up" not in caplog.text
+    np.testing.assert_allclose(seq.attitude.R_wc[0].numpy(), R_wc, atol=1e-6)
+    # Without the ground truth the filter is levelled by the same seconds: the camera's up is +z.
+    (root / "groundtruth.txt").unlink()
+    R0 = TUMSequence(root).attitude.R_wc[0].numpy()
+    assert R0[:, 1] @ np.array([0.0, 0.0, -1.0]) > math.cos(math.radians(0.1))
+
+
+@pytest.mark.parametrize(
+    "scale, match",
+    [(1 / G, "median magnitude is 1, expected about 9.81 (ax ay az in m/s^2, gravity included) (in g? multiply ax ay az by 9.81)"),
+     (0.0, "median magnitude is 0, expected about 9.81"), (3.0, "median magnitude is 29.4, expected about 9.81")],
+)
+def test_imu_file_in_other_units_is_refused(tmp_path, scale, match):
+    # The accelerometer logged in g (as many devices do), zeroed, or tripled: the file is named.
+    _write_seq(tmp_path / "seq", _times(2))
+    body = "".join(f"{100 + k * 0.005:.6f} 0 0 0 0 {-G * scale * math.cos(0.01 * k):.6f} {G * scale * math.sin(0.01 * k):.6f}\n" for k in range(20))
+    _write_imu(tmp_path / "seq", body)
+    with pytest.raises(DataFormatError, match=re.escape(match)) as err:
+        TUMSequence(tmp_path / "seq")
+    assert "imu.txt" in str(err.value)
+    # Moving samples around gravity's magnitude pass: 30 % of them at 2 g still leave the median at g.
+    body = "".join(f"{100 + k * 0.005:.6f} 0 0 0 0 {-G * (2.0 if k % 10 < 3 else 1.0):.6f} 0\n" for k in range(20))
+    _write_imu(tmp_path / "seq", body)
+    assert TUMSequence(tmp_path / "seq").imu is not None
+
+
 @pytest.mark.parametrize(
     "body, line, match",
     [

@@ -24,6 +24,7 @@ from torchslam.imu import (
     make_generator,
     simulate_imu,
     simulated_attitude,
+    start_up,
 )
 
 F64 = torch.float64
@@ -227,6 +228,51 @@ def test_ahrs_initial_tilt_from_accelerometer():
     assert stream.source == "imu"
     assert tilt.max() < 1e-9
     assert yaw[0] == pytest.approx(-0.8, abs=1e-9)  # yaw is unobservable and starts at zero
+
+
+def _swinging(accel_x, seconds: float = 10.0, rate: float = 200.0):
+    """A noiseless IMU on a tilted body pitching at 0.1 rad/s while its origin accelerates along
+    world x by ``accel_x(t)``, and the true up in the body frame at the first sample."""
+    t = torch.arange(int(seconds * rate) + 1, dtype=F64) / rate
+    R = _rz(torch.tensor(0.8, dtype=F64)) @ _rx(-1.7 + 0.1 * t)
+    omega = torch.tensor([0.1, 0.0, 0.0], dtype=F64).expand(len(t), 3)
+    a = torch.zeros(len(t), 3, dtype=F64)
+    a[:, 0] = accel_x(t)
+    imu = simulate_imu(Kinematics(t, R, omega, a), ImuNoise.noiseless(), G_W, 0).imu
+    return imu, R[0].T @ torch.tensor([0.0, 0.0, 1.0], dtype=F64)
+
+
+def _deg_between(u: torch.Tensor, v: torch.Tensor) -> float:
+    return math.degrees(math.acos(min(1.0, float(u @ v / (u.norm() * v.norm())))))
+
+
+def test_start_up_averages_the_motions_acceleration_out():
+    # Swinging at 6 m/s^2 (period 2 s) from the swing's peak: the first 0.1 s of specific force
+    # shows a tilt of about 31 degrees; ten seconds of whole swings cancel it, with the body
+    # pitching by 57 degrees meanwhile (each sample turned back by the integrated gyro).
+    imu, up = _swinging(lambda t: 6.0 * torch.cos(math.pi * t))
+    assert _deg_between(start_up(imu, window=0.1), up) > 25.0
+    assert _deg_between(start_up(imu), up) < 0.05
+    # Without the gyro's turn the mean would be far off: the samples are not simply averaged.
+    mean_f = imu.accel.mean(0)
+    assert _deg_between(mean_f, up) > 10.0
+    # The filter starts levelled by it (no ground-truth start given).
+    R0 = ahrs_attitude(imu).R_wc[0]
+    assert _deg_between(R0.T @ torch.tensor([0.0, 0.0, 1.0], dtype=F64), up) < 0.05
+
+
+def test_start_up_is_off_by_the_spans_change_of_velocity():
+    # 2 m/s^2 for the first second, then none: the mean specific force over the ten seconds is
+    # gravity plus dv / T, so the level is off by atan(|dv| / (g T)), about 1.2 degrees.
+    imu, up = _swinging(lambda t: torch.where(t <= 1.0, 2.0, 0.0).to(F64))
+    n = len(imu.timestamps)
+    mean_a = 2.0 * int((imu.timestamps <= 1.0).sum()) / n
+    expected = math.degrees(math.atan2(mean_a, 9.81))
+    assert _deg_between(start_up(imu), up) == pytest.approx(expected, abs=0.01)
+    # A shorter window sees the first second only: the full 2 m/s^2 as a tilt.
+    assert _deg_between(start_up(imu, window=0.5), up) == pytest.approx(math.degrees(math.atan2(2.0, 9.81)), abs=0.01)
+    with pytest.raises(ConfigError, match="window"):
+        start_up(imu, window=0.0)
 
 
 def _long_motion(seconds: float = 60.0) -> Trajectory:

@@ -15,8 +15,8 @@ the attitude filter of ``torchslam.imu.ahrs_attitude``, as ``attitude`` (source 
 synthetic sequence exposes its own; NI-SLAM's ``attitude=imu`` (and ``auto``) use it. Like the
 in-memory synthetic sequence, the filter starts at the ground-truth rotation at the first IMU
 sample where ``groundtruth.txt`` has one and its world is z-up (the filter's world; checked
-against the up that the first 0.1 s of specific force shows); otherwise it starts levelled by
-gravity (roll and pitch from that specific force) with zero yaw. Only the start fixes the world
+against the up that the stream's first 10 s of specific force show, ``imu.start_up``);
+otherwise it starts levelled by gravity (roll and pitch from that up) with zero yaw. Only the start fixes the world
 frame: every rotation after it comes from the IMU alone.
 
 Choices this reader makes:
@@ -59,7 +59,7 @@ from torch import Tensor
 
 from ..errors import ConfigError, DataFormatError
 from ..geometry import PinholeCamera
-from ..imu import AttitudeStream, ImuData, ahrs_attitude
+from ..imu import AttitudeStream, ImuData, ahrs_attitude, start_up
 from .calibration import Calibration, colour_to_depth_maps, resolve_calibration
 from .frame import Frame, associate_timestamps
 from .png import available as png_available
@@ -77,9 +77,13 @@ ACCELEROMETER_FILE = "accelerometer.txt"
 IMU_FILE = "imu.txt"
 
 # Largest angle between the ground truth's world up and the up the IMU's specific force shows at
-# the start for the ground truth to start the attitude filter (the motion's own acceleration
-# tilts the measured up by a few degrees; a world that is not z-up is tens of degrees off).
+# the start (``imu.start_up``, averaged over seconds) for the ground truth to start the attitude
+# filter (the motion's own acceleration and the gyro's bias leave about a degree; a world that is
+# not z-up is tens of degrees off).
 _IMU_START_MAX_TILT_DEG = 20.0
+
+# Range of the median specific-force magnitude, m/s^2, that ``imu.txt`` may show (gravity is 9.81).
+_IMU_GRAVITY_RANGE = (4.9, 19.6)
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SIGNATURE = b"\xff\xd8"
@@ -195,6 +199,15 @@ def _read_imu(path: Path) -> ImuData:
     stamps, values = _read_stamped_values(path, "timestamp gx gy gz ax ay az", "IMU value")
     if stamps.size == 0:
         raise DataFormatError(f"{path}: no IMU samples (expected lines 'timestamp gx gy gz ax ay az')")
+    # Moving or not, an accelerometer's reading is about gravity's magnitude most of the time: a
+    # median far from it means other units (g, as many devices log it) or columns out of order.
+    median = float(np.median(np.linalg.norm(values[:, 3:], axis=1)))
+    if not _IMU_GRAVITY_RANGE[0] <= median <= _IMU_GRAVITY_RANGE[1]:
+        hint = " (in g? multiply ax ay az by 9.81)" if 0.5 <= median <= 2.0 else ""
+        raise DataFormatError(
+            f"{path}: the specific force's median magnitude is {median:.3g}, expected about 9.81 "
+            f"(ax ay az in m/s^2, gravity included){hint}"
+        )
     values_t = torch.from_numpy(values)
     return ImuData(torch.from_numpy(stamps), values_t[:, :3].contiguous(), values_t[:, 3:].contiguous())
 
@@ -464,8 +477,9 @@ class TUMSequence:
         """The ground-truth rotation at the first IMU sample where it may start the filter, else None.
 
         The filter needs a z-up world: a ground truth whose world up differs from the up that the
-        first 0.1 s of specific force shows by more than ``_IMU_START_MAX_TILT_DEG`` is not used
-        (with a warning), and the filter starts levelled by gravity instead.
+        stream's first seconds of specific force show (``imu.start_up``) by more than
+        ``_IMU_START_MAX_TILT_DEG`` is not used (with a warning), and the filter starts levelled
+        by gravity instead.
         """
         imu, gt = self.imu, self.groundtruth_raw
         if imu is None or gt is None:
@@ -474,15 +488,13 @@ class TUMSequence:
         if not bool(ok[0]):
             return None
         R0 = T0[0, :3, :3]
-        first = (imu.timestamps - imu.timestamps[0]) <= 0.1
-        f_dir = imu.accel[first] / imu.accel[first].norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        up_w = R0 @ f_dir.mean(0)
-        cos_tilt = float(up_w[2]) / max(float(up_w.norm()), 1e-12)
+        up_w = R0 @ start_up(imu)
+        cos_tilt = float(up_w[2])
         tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
         if tilt_deg > _IMU_START_MAX_TILT_DEG:
             logger.warning(
-                "%s: the ground truth's world is not z-up (the measured up is %.0f deg off its +z at the first IMU "
-                "sample); the attitude filter starts levelled by gravity with zero yaw instead", path, tilt_deg,
+                "%s: the ground truth's world is not z-up (the measured up is %.0f deg off its +z at the start of the IMU "
+                "stream); the attitude filter starts levelled by gravity with zero yaw instead", path, tilt_deg,
             )
             return None
         return R0

@@ -2,6 +2,7 @@
 
 from .attitude import (
     ATTITUDE_SOURCES,
+    LEVEL_WINDOW_S,
     AttitudeSource,
     AttitudeStream,
     ahrs_attitude,
@@ -9,6 +10,7 @@ from .attitude import (
     groundtruth_attitude,
     integrate_gyro,
     simulated_attitude,
+    start_up,
 )
 from .simulate import (
     GRAVITY_W,
@@ -31,6 +33,7 @@ __all__ = [
     "ImuData",
     "ImuNoise",
     "Kinematics",
+    "LEVEL_WINDOW_S",
     "SimulatedImu",
     "ahrs_attitude",
     "attitude_errors",
@@ -41,5 +44,6 @@ __all__ = [
     "make_generator",
     "simulate_imu",
     "simulated_attitude",
+    "start_up",
     "time_derivatives",
 ]

@@ -63,12 +63,14 @@ __all__ = [
     "ATTITUDE_SOURCES",
     "AttitudeSource",
     "AttitudeStream",
+    "LEVEL_WINDOW_S",
     "TiltInputs",
     "ahrs_attitude",
     "attitude_errors",
     "groundtruth_attitude",
     "integrate_gyro",
     "simulated_attitude",
+    "start_up",
 ]
 
 # The providers' labels; a run records which one it used.
@@ -293,6 +295,39 @@ def _swing_to(u: Tensor, e: Tensor) -> Tensor:
     return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+# Seconds of IMU samples ``start_up`` averages: at 10 s a sequence's velocity change is a few
+# percent of gravity's (2.4 m/s, a brisk walk reversing, tilts the mean by 1.4 degrees).
+LEVEL_WINDOW_S = 10.0
+
+
+def start_up(imu: ImuData, window: float = LEVEL_WINDOW_S) -> Tensor:
+    """The world's up in the IMU frame at the first sample, from the first ``window`` seconds.
+
+    The mean specific force over a span, each sample turned into the first sample's frame by the
+    integrated gyro, is ``R_w0^T (g e_up + dv / T)``: gravity plus the span's change of velocity
+    ``dv`` over its length ``T``. One sample (or 0.1 s) shows the body's acceleration as a tilt
+    (28 degrees at the start of a fast synthetic walk); a span of seconds averages it out, down
+    to ``|dv| / (g T)`` (0.5 degrees there over 10 s), while the gyro's bias adds about
+    ``bias T / 2``. Samples are not gated: the gate would drop the accelerated ones and bias the
+    mean towards the rest.
+
+    Args:
+        imu: the stream; its first ``window`` seconds are used (all of it where shorter).
+        window: seconds, > 0.
+
+    Returns:
+        (3,) float64 unit vector, the up direction in the IMU frame at ``imu.timestamps[0]``.
+    """
+    if not window > 0:
+        raise ConfigError(f"window: expected seconds > 0, got {window}")
+    t = imu.timestamps
+    n = max(1, int(((t - t[0]) <= window).sum()))
+    q_id = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device=t.device)
+    q = _integrate_quat(t[:n], imu.gyro[:n].to(torch.float64), q_id) if n > 1 else q_id[None]
+    up = _qrotate(q, imu.accel[:n].to(torch.float64)).mean(0)
+    return up / up.norm().clamp_min(1e-12)
+
+
 def ahrs_attitude(
     imu: ImuData,
     R0: Tensor | None = None,
@@ -302,6 +337,7 @@ def ahrs_attitude(
     gravity: float = 9.81,
     R_bc: Tensor | None = None,
     source: str = "imu",
+    level_window: float = LEVEL_WINDOW_S,
 ) -> AttitudeStream:
     """Estimate attitude from gyroscope and accelerometer with a complementary filter.
 
@@ -310,8 +346,8 @@ def ahrs_attitude(
     Args:
         imu: gyroscope (rad/s) and accelerometer (m/s^2) samples in the IMU (body) frame.
         R0: (3, 3) IMU-to-world rotation at the first sample, in a z-up world. If None, roll
-            and pitch come from the mean accelerometer direction over the first 0.1 s and yaw
-            is zero.
+            and pitch come from the up that the first ``level_window`` seconds of specific
+            force show (``start_up``) and yaw is zero.
         time_constant: tilt low-pass time constant tau, seconds; ``math.inf`` disables the
             accelerometer correction (pure gyro integration).
         accel_gate: samples with ``| |f| - gravity | > accel_gate`` m/s^2 do not correct tilt.
@@ -319,6 +355,7 @@ def ahrs_attitude(
         R_bc: (3, 3) camera-to-IMU rotation (the camera frame expressed in the IMU frame);
             identity if None, as for the synthetic sequences.
         source: label of the resulting stream ("imu" for measured or synthetic IMU data).
+        level_window: seconds of samples ``start_up`` levels the start with where ``R0`` is None.
 
     Returns:
         Stream of camera-to-world rotations at the IMU timestamps.
@@ -337,9 +374,7 @@ def ahrs_attitude(
     f_norm = accel.norm(dim=-1)
     f_dir = accel / f_norm.clamp_min(1e-9)[:, None]
     if R0 is None:
-        n0 = max(1, int(((t - t[0]) <= 0.1).sum()))
-        mean_dir = f_dir[:n0].mean(0)
-        q0 = _swing_to((mean_dir / mean_dir.norm())[None], e_up)[0]
+        q0 = _swing_to(start_up(imu, level_window)[None], e_up)[0]
     else:
         check_shape(R0, "3 3", "R0")
         q0 = rotmat_to_quat_xyzw(R0.to(torch.float64))
