@@ -11,7 +11,8 @@ import torch
 
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.data.synthetic.sequence import synthetic_kinematics
-from torchslam.errors import ConfigError
+from torchslam.errors import ConfigError, ShapeError
+from torchslam.geometry import so3_log
 from torchslam.imu import ImuNoise, ahrs_attitude, attitude_errors, groundtruth_attitude, simulated_attitude
 from torchslam.imu.attitude import _swing_to, quat_xyzw_to_rotmat
 from torchslam.imu.compensation import AccelerationCompensation
@@ -136,6 +137,44 @@ def test_a_restart_holds_the_correction_and_a_step_back_in_time_restarts():
     done = comp.compensated_samples
     comp.observe(float(t[10]), p[10])  # time went back: a new window starts
     assert comp.compensated_samples == done
+
+
+def test_reposition_carries_the_window_through_a_moved_world():
+    """A loop closure moves the world under the tracked frames. Planted: from frame 40 on the
+    positions are seen 5 cm away (as a loop correction re-poses them). With the held window
+    re-posed the same way the compensation goes on exactly as if nothing had moved (the fitted
+    acceleration does not see a shift); a restart instead drops the compensation until a new
+    window fills, and the acceleration's leak comes back meanwhile."""
+    _, seq = _sequence(ImuNoise.noiseless())
+    gt = seq.groundtruth
+    t = gt.timestamps.to(F64)
+    p = gt.T_wc[:, :3, 3].to(F64)
+    moved = p + torch.tensor([0.05, -0.02, 0.01], dtype=F64)
+    R, _ = seq.attitude.at(t)
+
+    def run(at_40: str | None) -> torch.Tensor:
+        comp = AccelerationCompensation(seq.attitude, 5)
+        out = []
+        for k in range(len(t)):
+            if k == 40 and at_40 == "reposition":
+                assert comp.held == 11
+                comp.reposition(moved[40 - comp.held : 40])
+            elif k == 40 and at_40 == "restart":
+                comp.restart()
+            out.append(comp.correction(float(t[k])) @ R[k])
+            comp.observe(float(t[k]), (moved if at_40 is not None and k >= 40 else p)[k])
+        return torch.stack(out)
+
+    unmoved, repositioned, restarted = run(None), run("reposition"), run("restart")
+    gap = so3_log(unmoved.transpose(-1, -2) @ repositioned).norm(dim=-1)
+    assert math.degrees(float(gap.max())) < 1e-6
+    tilt, _ = attitude_errors(unmoved, gt.T_wc[:, :3, :3].to(F64))
+    tilt_restart, _ = attitude_errors(restarted, gt.T_wc[:, :3, :3].to(F64))
+    assert float(tilt_restart[40:52].max()) > 3 * float(tilt[40:52].max())
+    comp = AccelerationCompensation(seq.attitude, 5)
+    comp.observe(float(t[0]), p[0])
+    with pytest.raises(ShapeError, match="positions"):
+        comp.reposition(p[:2])
 
 
 def test_bad_half_window_is_refused():

@@ -52,13 +52,19 @@ def test_imu_attitude_loop_lowers_error_with_its_rotation_measured():
     # With the IMU attitude the odometry stays within 0.42 cm here. A loop edge that keeps the
     # attitude's rotation moved it to 0.50 (the heading the gyro drifted stays in the graph); with
     # the loop's rotation measured over the old keyframe's map (loop.visual_rotation) it falls to
-    # 0.24 (README "Loop rotation measured").
+    # 0.24 (README "Loop rotation measured"; 0.25 since the compensation goes on through the loop).
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
     with_loop, a_loop = _run(seq, attitude="imu")
     without, a_none = _run(seq, attitude="imu", loop={"enabled": False})
     assert with_loop.output.metrics["loops"]["accepted"] >= 1
     assert with_loop.output.metrics["loop_visual_rotation"]["refined"] >= 1
     assert without.output.metrics["loop_visual_rotation"] is None
+    # The acceleration compensation ran through the loops (their re-posed frames carry its window,
+    # AccelerationCompensation.reposition): every IMU sample up to the last window's centre, h + 1 =
+    # 6 frames before the end, went through it (1,600 of 1,880 when a loop restarted it).
+    t_imu = seq.imu.timestamps
+    centre = float(seq.timestamps[-1]) - 6 / 10.0
+    assert with_loop.output.metrics["accel_compensation"]["imu_samples"] >= int((t_imu <= centre - 1e-6).sum()) - 2
     assert a_loop.stats["rmse"] < 0.8 * a_none.stats["rmse"], (a_loop.stats["rmse"], a_none.stats["rmse"])
 
 

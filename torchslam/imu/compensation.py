@@ -16,8 +16,9 @@ The fit over ``2 h + 1`` frames is centred, so the low-pass runs ``h + 1`` frame
 newest frame, and a frame's correction is the low-pass's state there: against a time constant
 ``tau`` of 10 s, a lag of a fraction of a second. Before the first window is full the samples up
 to each frame go in uncorrected, as in the stream's own filter; after a discontinuity of the
-tracked positions (a loop closure moves the keyframes) the state holds until a new window fills,
-and the samples in between are then corrected by its first fit.
+tracked positions (``restart``) the state holds until a new window fills, and the samples in
+between are then corrected by its first fit. A loop closure moves the keyframes without such a
+discontinuity: the window takes the re-posed positions of its frames (``reposition``) and goes on.
 Cost per frame: one 3-parameter least-squares fit and the stream's low-pass (``_linear_recurrence``)
 over the few IMU samples since the previous frame, float64 on the host: about 0.5 ms.
 """
@@ -30,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import ConfigError
+from ..errors import ConfigError, ShapeError
 from .attitude import AttitudeStream, _linear_recurrence, _swing_to, quat_xyzw_to_rotmat
 
 __all__ = ["AccelerationCompensation"]
@@ -87,6 +88,28 @@ class AccelerationCompensation:
         self._times.clear()
         self._positions.clear()
         self._last_accel = None
+
+    @property
+    def held(self) -> int:
+        """How many of the newest observed positions the window holds (at most ``2 h + 1``)."""
+        return len(self._times)
+
+    def reposition(self, positions: Tensor | np.ndarray) -> None:
+        """Replace the held positions by the same frames' new ones, (``held``, 3), oldest first.
+
+        Where the world moves under the tracked frames (a loop closure re-poses their keyframes,
+        each frame staying where it was relative to its keyframe), the window goes on with the
+        moved positions instead of starting again (``restart``): with a loop closed every few
+        keyframes, a window of ``2 h + 1`` frames would rarely fill, and the tilt correction
+        would run on uncompensated samples.
+
+        Raises:
+            ShapeError: for another number of positions than ``held``.
+        """
+        p = torch.as_tensor(positions).detach().to("cpu", F64)
+        if p.shape != (len(self._positions), 3):
+            raise ShapeError(f"positions: expected ({len(self._positions)}, 3), the held frames, got {tuple(p.shape)}")
+        self._positions = list(p.unbind(0))
 
     def observe(self, t: float, position: Tensor | np.ndarray) -> None:
         """Add the tracked position (3,) of a frame at stream time ``t``; advance the low-pass

@@ -459,6 +459,13 @@ class NISlam:
             return torch.zeros(3, dtype=T[1].dtype)
         return (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
 
+    def _world_positions(self, n: int) -> Tensor:
+        """(n, 3) float64 world positions of the ``n`` newest recorded frames, oldest first, at
+        their keyframes' current poses."""
+        log = self.frames
+        rows = range(len(log) - n, len(log))
+        return torch.stack([(self.keyframes[log.kf[m]].T_wk @ log.T_kf[m])[:3, 3] for m in rows]) if n else torch.zeros(0, 3, dtype=torch.float64)
+
     def _rebase_last_frame(self) -> None:
         """The newest recorded frame became a keyframe: express it relative to itself."""
         self.frames.rebase_last(len(self.keyframes) - 1)
@@ -837,10 +844,12 @@ class NISlam:
         v = self._velocity()
         R_before = self.keyframes[-1].T_wk[:3, :3]
         self._history_start = len(self.frames)
-        if self.accel is not None:
-            self.accel.restart()  # the keyframes moved: positions before and after do not mix
         for kf, T in zip(self.keyframes[lo:], res.T_wc):
             kf.T_wk = T
+        if self.accel is not None:
+            # The frames of the compensation's window moved with their keyframes: it goes on with
+            # their new positions.
+            self.accel.reposition(self._world_positions(self.accel.held))
         self._carried_velocity = None if v is None else (self.keyframes[-1].T_wk[:3, :3] @ R_before.T) @ v
         # Fuse the back-end into the attitude: the newest keyframe's optimised rotation replaces
         # the stream's, and the same correction applies to the frames that follow.
