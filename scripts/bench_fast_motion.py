@@ -62,16 +62,17 @@ def _real_split(sequence: str) -> str:
     return "held-out" if sequence.startswith("hololens") else "tuning"
 
 
-def _blur_cases(items: list[str]) -> list[tuple[int, float]]:
+def _blur_cases(items: list[str], option: str = "--blur") -> list[tuple[int, float]]:
+    """``SEED:EXPOSURE`` items as (seed, seconds); a bad one exits naming ``option``."""
     cases = []
     for item in items:
         seed, sep, exposure = item.partition(":")
         try:
             cases.append((int(seed), float(exposure)))
         except ValueError:
-            raise SystemExit(f"--blur: expected SEED:EXPOSURE, got {item!r}") from None
+            raise SystemExit(f"{option}: expected SEED:EXPOSURE, got {item!r}") from None
         if not sep or cases[-1][1] < 0:
-            raise SystemExit(f"--blur: expected SEED:EXPOSURE with EXPOSURE >= 0 seconds, got {item!r}")
+            raise SystemExit(f"{option}: expected SEED:EXPOSURE with EXPOSURE >= 0 seconds, got {item!r}")
     return cases
 
 

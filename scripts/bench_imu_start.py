@@ -29,17 +29,13 @@ from pathlib import Path
 import torch
 
 from _bench import RESULTS, ate_cm, system_by_name, write_json
+from bench_fast_motion import FAST_WALK, _blur_cases, _seed_split
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence, write_tum_folder
 from torchslam.data.tum import TUMSequence
 from torchslam.imu import attitude_errors
 from torchslam.systems import run_sequence
 
-FAST_WALK = dict(frames=313, trajectory="loop", period=3.4, exposure_samples=12)
 FOLDER_FILES = ("rgb", "depth", "rgb.txt", "depth.txt", "imu.txt", "calibration.txt")
-
-
-def _split(seed: int) -> str:
-    return "tuning" if seed < 100 else "held-out"
 
 
 def _without_groundtruth(folder: Path, into: Path) -> Path:
@@ -83,10 +79,8 @@ def main() -> None:
     torch.set_num_threads(1)
     cases = [(f"handheld-{s}", int(s), SyntheticConfig(seed=int(s), frames=args.frames, trajectory="handheld"))
              for s in args.seeds.split(",") if s.strip()]
-    for item in args.walks:
-        seed, _, exposure = item.partition(":")
-        cfg = SyntheticConfig(seed=int(seed), exposure=float(exposure or 0), **FAST_WALK)
-        cases.append((f"fast-walk-{seed}-exposure{float(exposure or 0):g}", int(seed), cfg))
+    for seed, exposure in _blur_cases(args.walks, "--walks"):
+        cases.append((f"fast-walk-{seed}-exposure{exposure:g}", seed, SyntheticConfig(seed=seed, exposure=exposure, **FAST_WALK)))
     rows = []
     print(f"{'case':28s} {'split':9s} {'folder start':>12s} {'tilt':>6s} {'ATE':>7s} {'loops':>6s} | {'levelled':>8s} {'tilt':>6s} {'ATE':>7s} {'loops':>6s}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -96,7 +90,7 @@ def main() -> None:
             reference = TUMSequence(folder)
             with_gt = _run(folder, reference)
             levelled = _run(_without_groundtruth(folder, Path(tmp) / f"{name}-no-gt"), reference)
-            row = {"case": name, "split": _split(seed), "as_written": with_gt, "without_groundtruth": levelled}
+            row = {"case": name, "split": _seed_split(seed), "as_written": with_gt, "without_groundtruth": levelled}
             rows.append(row)
             a, b = with_gt, levelled
             print(

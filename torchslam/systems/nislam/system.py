@@ -444,8 +444,7 @@ class NISlam:
         v = self._velocity()
         if v is None:
             return None
-        p = (self.keyframes[log.kf[-1]].T_wk @ log.T_kf[-1])[:3, 3]
-        return p + v * (t - log.time[-1])
+        return self._world_positions(1)[0] + v * (t - log.time[-1])
 
     def _velocity(self) -> Tensor | None:
         """(3,) float64 world velocity of the prediction, m/s: from the last two recorded frames
@@ -453,18 +452,19 @@ class NISlam:
         log = self.frames
         if len(log) - self._history_start < 2:
             return self._carried_velocity
-        T = [self.keyframes[log.kf[k]].T_wk @ log.T_kf[k] for k in (-2, -1)]
+        p = self._world_positions(2)
         t1, t2 = log.time[-2], log.time[-1]
         if not t2 > t1:
-            return torch.zeros(3, dtype=T[1].dtype)
-        return (T[1][:3, 3] - T[0][:3, 3]) / (t2 - t1)
+            return torch.zeros(3, dtype=p.dtype)
+        return (p[1] - p[0]) / (t2 - t1)
 
     def _world_positions(self, n: int) -> Tensor:
         """(n, 3) float64 world positions of the ``n`` newest recorded frames, oldest first, at
-        their keyframes' current poses."""
+        their keyframes' current poses (each ``T_wk[kf] @ T_kf``)."""
         log = self.frames
-        rows = range(len(log) - n, len(log))
-        return torch.stack([(self.keyframes[log.kf[m]].T_wk @ log.T_kf[m])[:3, 3] for m in rows]) if n else torch.zeros(0, 3, dtype=torch.float64)
+        if not n:
+            return torch.zeros(0, 3, dtype=torch.float64)
+        return torch.stack([(self.keyframes[log.kf[m]].T_wk @ log.T_kf[m])[:3, 3] for m in range(len(log) - n, len(log))])
 
     def _rebase_last_frame(self) -> None:
         """The newest recorded frame became a keyframe: express it relative to itself."""
