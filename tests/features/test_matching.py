@@ -338,6 +338,7 @@ def test_auto_backend_on_the_cpu_is_the_faster_one_timed_once(monkeypatch, slow)
     cpu = torch.device("cpu")
     originals = {name: getattr(matching, name) for name in ("_match_int8", "_match_opencv")}
     monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_int8_may_be_fast", lambda: True)  # timed whatever this CPU is
     for name, fn in originals.items():
         # The slow one sleeps; the other returns a result computed beforehand, in no time.
         done = fn(*_probe_args())
@@ -377,6 +378,7 @@ def test_auto_backend_is_decided_at_the_large_probe_and_skips_it_when_hopeless(m
         _spin(0.002 + 0.0005 * d1.shape[0] * d2.shape[0] / 1e6)
 
     monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_int8_may_be_fast", lambda: True)  # timed whatever this CPU is
     monkeypatch.setattr(matching, "_match_int8", int8_fixed)
     monkeypatch.setattr(matching, "_match_opencv", _sized(lambda *args: None, 0.005))
     assert matching.cpu_auto_backend() is matching.MatchBackend.INT8
@@ -414,9 +416,48 @@ def test_auto_backend_probe_reads_the_process_cpu_time(monkeypatch):
         return done
 
     monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_int8_may_be_fast", lambda: True)  # timed whatever this CPU is
     monkeypatch.setattr(matching, "_match_int8", waiting)
     monkeypatch.setattr(matching, "_match_opencv", on_a_worker)
     assert matching.cpu_auto_backend() is matching.MatchBackend.INT8
+
+
+@pytest.mark.parametrize(
+    "flags, timed",
+    [
+        ({"avx2", "fma", "popcnt"}, False),  # AVX2 only: not timed, OpenCV
+        ({"avx2", "avx512f", "avx512bw"}, True),  # AVX-512 without VNNI: timed
+        ({"avx2", "avx512f", "avx512_vnni"}, True),
+        ({"avx2", "avx_vnni"}, True),  # AVX-VNNI without AVX-512
+        ({"avx2", "amx_int8"}, True),
+        (None, True),  # flags unknown (not Linux, not x86): timed
+    ],
+)
+def test_auto_backend_skips_the_probe_on_a_cpu_without_int8_dot_products(monkeypatch, flags, timed):
+    from torchslam.features import matching
+
+    if not matching._INT8_GEMM:
+        pytest.skip("this torch build has no int8 GEMM on the CPU")
+    probed = []
+    monkeypatch.setattr(matching, "_cpu_auto", None)
+    monkeypatch.setattr(matching, "_cpu_flags", lambda: None if flags is None else frozenset(flags))
+    monkeypatch.setattr(matching, "_probe_cpu_ms", lambda n: probed.append(n) or (1.0, 2.0))  # int8 cheaper
+    backend = matching.cpu_auto_backend()
+    assert bool(probed) is timed
+    assert backend is (matching.MatchBackend.INT8 if timed else matching.MatchBackend.OPENCV)
+
+
+def test_cpu_flags_are_read_here():
+    # On an x86 Linux machine the flags are read (every x86-64 CPU has sse2); elsewhere None.
+    import platform
+
+    from torchslam.features import matching
+
+    flags = matching._cpu_flags()
+    if platform.system() == "Linux" and platform.machine().lower() in ("x86_64", "amd64"):
+        assert flags is not None and "sse2" in flags
+    else:
+        assert flags is None
 
 
 def test_auto_backend_is_opencv_without_an_int8_gemm(monkeypatch):

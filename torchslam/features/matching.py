@@ -23,6 +23,7 @@ ties).
 from __future__ import annotations
 
 import enum
+import platform
 import time
 from typing import NamedTuple
 
@@ -131,6 +132,33 @@ def _probe_cpu_ms(n: int) -> tuple[float, float]:
     return int8_ms, opencv_ms
 
 
+# x86 feature flags of CPUs whose int8 GEMM may beat OpenCV (AVX-512 VNNI implies AVX-512F;
+# AVX-VNNI and AMX on CPUs without AVX-512). Without any of them (an AVX2-only CPU) oneDNN's int8
+# GEMM took 60 x OpenCV's time, and the first of the probe's timings alone cost about 0.1 s of a
+# run's start, only to find it hopeless.
+_FAST_INT8_FLAGS = frozenset({"avx512f", "avx_vnni", "amx_int8"})
+
+
+def _cpu_flags() -> frozenset[str] | None:
+    """This x86 CPU's feature flags from ``/proc/cpuinfo`` (Linux), or None where they cannot be read."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return None
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return frozenset(line.partition(":")[2].split())
+    except OSError:
+        pass
+    return None
+
+
+def _int8_may_be_fast() -> bool:
+    """False on an x86 CPU known to lack every int8 dot-product extension, else True (timed)."""
+    flags = _cpu_flags()
+    return flags is None or bool(flags & _FAST_INT8_FLAGS)
+
+
 def cpu_auto_backend() -> MatchBackend:
     """The backend ``auto`` runs on the CPU in this process: ``int8`` or ``opencv``.
 
@@ -143,12 +171,13 @@ def cpu_auto_backend() -> MatchBackend:
     and where int8 is not hopeless there, 1,024 x 1,024, whose figures decide. The clock is the
     process's CPU time, so OpenCV's worker threads count: a run has other work for the cores
     they take (another thread's work during a timed call counts too, in proportion to each
-    call's length; the best of three keeps the cheaper). Both give the same matches, so the
-    choice changes speed only.
+    call's length; the best of three keeps the cheaper). An x86 CPU whose flags show no AVX-512,
+    AVX-VNNI or AMX is not timed: OpenCV (``_int8_may_be_fast``). Both give the same matches, so
+    the choice changes speed only.
     """
     global _cpu_auto
     if _cpu_auto is None:
-        if not _INT8_GEMM:
+        if not _INT8_GEMM or not _int8_may_be_fast():
             _cpu_auto = MatchBackend.OPENCV
         else:
             int8_ms, opencv_ms = _probe_cpu_ms(_PROBE_DESCRIPTORS)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import check_float, check_shape
+from ..errors import broadcast_shape, check_float, check_shape
 
 __all__ = [
     "skew",
@@ -186,7 +186,7 @@ def se3_from_Rt(R: Tensor, t: Tensor) -> Tensor:
 
 
 def _from_Rt(R: Tensor, t: Tensor) -> Tensor:
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    batch = broadcast_shape(R.shape[:-2], t.shape[:-1], what="the batch shapes of R and t")
     T = R.new_zeros(batch + (4, 4))
     T[..., :3, :3] = R
     T[..., :3, 3] = t

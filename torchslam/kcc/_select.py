@@ -18,6 +18,8 @@ import math
 import torch
 from torch import Tensor
 
+from ..errors import broadcast_shape
+
 _BITS = {
     torch.float32: torch.int32,
     torch.float64: torch.int64,
@@ -54,7 +56,7 @@ def where(mask: Tensor, a: Tensor, b: Tensor | float) -> Tensor:
         return (a_bits * mask).view(a.dtype)  # +0 has no bits set
     b_bits = (a.new_full((), b) if scalar else b).view(bits)
     diff = a_bits ^ b_bits  # a fresh tensor: the rest in place where the mask's shape fits in it
-    if torch.broadcast_shapes(diff.shape, mask.shape) == diff.shape:
+    if broadcast_shape(diff.shape, mask.shape, what="the values and the mask") == diff.shape:
         diff.mul_(mask)
     else:
         diff = diff * mask
