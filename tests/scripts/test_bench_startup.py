@@ -24,7 +24,8 @@ def test_measures_each_checkout_in_its_own_process_and_writes_the_medians(tmp_pa
     assert (row["system"], row["sequence"], row["rounds"]) == ("nislam", "seq", 1)
     for label in ("other", "this"):
         m = row[label]
-        assert 0 < m["start_called_s"] <= m["start_returned_s"] <= m["first_frame_s"]
+        assert 0 < m["start_called_s"] <= m["start_returned_s"] <= m["first_frame_s"] <= m["end_s"]
+        assert m["fps_end_to_end"] > 0
 
 
 def test_a_checkout_whose_torchslam_was_not_the_one_imported_is_refused(tmp_path, monkeypatch):
