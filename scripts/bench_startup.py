@@ -88,13 +88,14 @@ def main() -> None:
             marks: dict[str, list[dict]] = {"other": [], "this": []}
             for r in range(args.rounds):
                 for label in (("other", "this") if r % 2 == 0 else ("this", "other")):
-                    marks[label].append(_measure(trees[label], system, data_root() / name, args.tensorboard, args.frames))
+                    m = _measure(trees[label], system, data_root() / name, args.tensorboard, args.frames)
+                    if Path(m.pop("torchslam")).parents[1] != trees[label]:
+                        raise SystemExit(f"the {label} run imported another torchslam, not {trees[label]}'s")
+                    marks[label].append(m)
             row = {"system": system, "sequence": name, "rounds": args.rounds, "tensorboard": args.tensorboard,
                    "frames": args.frames}
             for label, runs in marks.items():
-                if any(Path(m["torchslam"]).parents[1] != trees[label] for m in runs):
-                    raise SystemExit(f"the {label} runs imported {runs[0]['torchslam']}, not {trees[label]}'s torchslam")
-                row[label] = {k: statistics.median(m[k] for m in runs) for k in runs[0] if k != "torchslam"}
+                row[label] = {k: statistics.median(m[k] for m in runs) for k in runs[0]}
             rows.append(row)
             o, t = row["other"], row["this"]
             print(f"{system:7s} {name:20s} start called {o['start_called_s']:.2f} -> {t['start_called_s']:.2f} s, "
