@@ -95,7 +95,5 @@ def log_final(monitor: Monitor, output: SystemOutput, sequence: Sequence, name: 
     estimate = Trajectory(output.timestamps.to(torch.float64), output.T_wc.to(torch.float64))
     try:
         monitor.image("trajectory/top_view", trajectory_image(name, estimate, sequence.groundtruth), step)
-    except ImportError as exc:  # matplotlib is optional at run time
-        logger.warning("trajectory image not logged: %s (install matplotlib to get it)", exc)
     except (TorchSlamError, ValueError) as exc:  # a plot must never cost the run
         logger.warning("trajectory image not logged: %s", exc)
