@@ -63,8 +63,8 @@ print(json.dumps(marks))
 def _measure(tree: Path, system: str, data: Path, tensorboard: bool = False, frames: int = 5) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", TORCHSLAM_THREADS="1")
     with tempfile.TemporaryDirectory() as out:
-        # cwd elsewhere: ``python -c`` puts the working directory first on sys.path, before PYTHONPATH.
         extra = ([] if tensorboard else ["--no-tensorboard"]) + (["--max-frames", str(frames)] if frames > 0 else [])
+        # cwd elsewhere: ``python -c`` puts the working directory first on sys.path, before PYTHONPATH.
         proc = subprocess.run([sys.executable, "-c", _PROBE, system, str(data), str(Path(out) / "run"), *extra],
                               env=env, cwd=out, capture_output=True, text=True, check=True)
     return json.loads(proc.stdout.strip().splitlines()[-1])

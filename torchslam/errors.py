@@ -13,6 +13,7 @@ from collections.abc import MutableMapping
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -96,26 +97,19 @@ def check_shape(x, spec: str, name: str, dims: MutableMapping[str, int] | None =
 
 
 def broadcast_shape(*shapes: tuple[int, ...], what: str = "shapes") -> tuple[int, ...]:
-    """The shape that ``shapes`` broadcast to (NumPy's and torch's rules), in plain Python.
+    """The shape that ``shapes`` broadcast to: ``numpy.broadcast_shapes``, raising ``ShapeError``.
 
     ``torch.broadcast_shapes`` imports ``torch.fx``'s symbolic shapes (and SymPy) on its first
-    call, about 0.4 s of a run's start, and costs about 15 us a call afterwards; this costs one.
+    call, about 0.4 s of a run's start, and costs about 15 us a call afterwards; NumPy's rule is
+    the same, on plain tuples, in about 2 us.
 
     Raises:
         ShapeError: the shapes do not broadcast (``what`` names them).
     """
-    n = max((len(s) for s in shapes), default=0)
-    out = [1] * n
-    for s in shapes:
-        off = n - len(s)
-        for i, d in enumerate(s):
-            o = out[off + i]
-            if d != o:
-                if o == 1:
-                    out[off + i] = d
-                elif d != 1:
-                    raise ShapeError(f"{what}: {', '.join(_fmt(x) for x in shapes)} do not broadcast")
-    return tuple(out)
+    try:
+        return tuple(np.broadcast_shapes(*shapes))
+    except ValueError:
+        raise ShapeError(f"{what}: {', '.join(_fmt(x) for x in shapes)} do not broadcast") from None
 
 
 def check_float(x: torch.Tensor, name: str) -> None:
