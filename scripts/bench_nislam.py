@@ -257,33 +257,45 @@ def batched_kcc(data_root: Path, sizes: list[int], device: str, repeat: int) -> 
 
 
 def plot(result: dict, path: Path) -> None:
+    """ATE per run at the default (horizontal bars, coloured by split, the paper's figure marked) and,
+    when it was measured, the batched KCC stage's frames/s against B."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    acc = result["accuracy"]
-    acc = [r for r in acc if r["setting"] == "default"]
-    labels = [f"{r['sequence']}\n{r['attitude']}" for r in acc]
-    axes[0].bar(range(len(acc)), [100 * r["ate_rmse_m"] for r in acc], color="tab:blue")
-    for i, r in enumerate(acc):
+    acc = [r for r in result["accuracy"] if r["setting"] == "default"]
+    batched = result["batched_kcc"]
+    ncols = 2 if batched else 1
+    fig, axes = plt.subplots(1, ncols, figsize=(11 if batched else 7, 0.9 + 0.24 * max(1, len(acc))), squeeze=False)
+    ax = axes[0][0]
+    colours = {"tuning": "tab:blue", "held-out": "tab:orange"}
+    y = list(range(len(acc)))[::-1]
+    ax.barh(y, [100 * r["ate_rmse_m"] for r in acc], color=[colours.get(r["group"], "tab:gray") for r in acc])
+    for yi, r in zip(y, acc):
         if r["paper_ate_rmse_m"] is not None:
-            axes[0].plot([i - 0.4, i + 0.4], [100 * r["paper_ate_rmse_m"]] * 2, "r--", label="paper")
-    axes[0].set_xticks(range(len(acc)), labels, rotation=60, ha="right", fontsize=7)
-    axes[0].set_ylabel("ATE RMSE (cm)")
-    axes[0].set_title("NI-SLAM accuracy (default settings)")
-    axes[0].legend(loc="upper left")
-    for dev in sorted({r["device"] for r in result["batched_kcc"]}):
-        rows = [r for r in result["batched_kcc"] if r["device"] == dev]
-        axes[1].plot([r["B"] for r in rows], [r["frames_per_s_median"] for r in rows], "o-", label=dev)
-    axes[1].set_xscale("log", base=2)
-    axes[1].set_xlabel("batch size B")
-    axes[1].set_ylabel("frames/s (KCC stage)")
-    axes[1].set_title("Batched tracking step")
-    axes[1].legend()
+            ax.plot([100 * r["paper_ate_rmse_m"]] * 2, [yi - 0.4, yi + 0.4], "r-", lw=2)
+    ax.set_yticks(y, [f"{r['sequence']} · {r['attitude']}" for r in acc], fontsize=7)
+    ax.set_xlabel("ATE RMSE (cm)")
+    ax.set_title("NI-SLAM at the default settings")
+    handles = [matplotlib.patches.Patch(color=c, label=g) for g, c in colours.items() if any(r["group"] == g for r in acc)]
+    if any(r["paper_ate_rmse_m"] is not None for r in acc):
+        handles.append(matplotlib.lines.Line2D([], [], color="r", lw=2, label="paper"))
+    ax.legend(handles=handles, loc="lower right", fontsize=8)
+    ax.grid(axis="x", alpha=0.3)
+    if batched:
+        ax = axes[0][1]
+        for dev in sorted({r["device"] for r in batched}):
+            rows = [r for r in batched if r["device"] == dev]
+            ax.plot([r["B"] for r in rows], [r["frames_per_s_median"] for r in rows], "o-", label=dev)
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("batch size B")
+        ax.set_ylabel("frames/s (KCC stage)")
+        ax.set_title("Batched tracking step")
+        ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def paired_table(rows: list[dict], setting: str) -> str:
@@ -377,7 +389,8 @@ def main() -> None:
     for setting in settings:
         if setting != "default" and "default" in settings:
             print(paired_table(result["accuracy"], setting))
-    print("\n| device | B | frames/s (median) | frames/s (best) |\n|---|---:|---:|---:|")
+    if result["batched_kcc"]:
+        print("\n| device | B | frames/s (median) | frames/s (best) |\n|---|---:|---:|---:|")
     for r in result["batched_kcc"]:
         print(f"| {r['device']} | {r['B']} | {r['frames_per_s_median']:.1f} | {r['frames_per_s_best']:.1f} |")
 
