@@ -145,11 +145,13 @@ def _resolves_for_some_system(example: str, where: str = "") -> bool:
     return False
 
 
-def test_every_set_example_in_the_help_texts_and_readme_resolves():
+def test_every_set_example_in_the_help_texts_readme_and_docs_resolves():
     from tests._helpers import REPO_ROOT
 
     sources = dict(_help_texts())
     sources["README.md"] = (REPO_ROOT / "README.md").read_text()
+    for path in sorted((REPO_ROOT / "docs").rglob("*.md")):
+        sources[str(path.relative_to(REPO_ROOT))] = path.read_text()
     for path in sorted(REPO_ROOT.glob("configs/*.yaml")) + sorted((REPO_ROOT / "torchslam").rglob("*.yaml")):
         sources[str(path.relative_to(REPO_ROOT))] = path.read_text()
     examples = {(where, ex) for where, text in sources.items() for ex in _set_examples(text)}

@@ -6,7 +6,7 @@ them are handed back to the kernel when freed, either as their own ``mmap`` or b
 top of the heap, so the next frame touches fresh pages again: about 1,300-2,400 minor page faults
 per NI-SLAM tracking step on the 2-core benchmark machine, where a fault costs microseconds
 under the hypervisor. Raising the thresholds keeps that memory in the process: the same step
-then takes 5 faults, and runs about 1.2 x faster (README, Results: "The C heap kept between
+then takes 5 faults, and runs about 1.2 x faster (docs/results/cpu.md, "The C heap kept between
 frames").
 
 ``setup_allocator`` applies it to the whole process with ``mallopt`` (glibc only; elsewhere it

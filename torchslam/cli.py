@@ -25,7 +25,7 @@ def _add_threads(p) -> None:
 
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help=f"CPU threads of PyTorch and OpenCV (default: ${THREADS_ENV} if set, else {POLICY_THREADS} for "
-                   "PyTorch, which stays fast beside other work, and all cores for OpenCV; see the README's 'Threads')")
+                   "PyTorch, which stays fast beside other work, and all cores for OpenCV; see 'Threads' in docs/results/cpu.md)")
 
 
 def _config_help() -> str:

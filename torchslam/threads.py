@@ -5,7 +5,7 @@ of a pose graph, a few thousand 3-D points). Spread over several PyTorch intra-o
 gain nothing on an idle machine, and beside any other CPU-bound process they collapse: OpenMP's
 workers busy-wait at every parallel region for a core another process holds, so on a loaded
 machine NI-SLAM and FastGO run several times slower with two threads than with one
-(``scripts/bench_threads.py``; the figures are in the README, Results: Threads). OpenCV's pool
+(``scripts/bench_threads.py``; the figures are in docs/results/cpu.md, "Threads"). OpenCV's pool
 (ORB detection and Hamming matching in GC-SLAM's sparse front-end) waits without spinning, so
 using every core does not slow it, idle or beside a busy process. So by default PyTorch gets one
 intra-op thread and OpenCV every core the process may run on. ``--threads N`` or

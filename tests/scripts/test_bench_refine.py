@@ -14,5 +14,5 @@ def test_synthetic_pairs_refined_from_a_turned_start_land_near_the_truth():
     assert row["gap"] == 15 and row["pairs"] >= 2 and row["not_converged"] == 0
     assert len(row["errors_deg"]) == row["pairs"]
     # From 0.5 deg off, synthetic pairs come back within a tenth of a degree (real pairs do not:
-    # README "Loop rotation measured").
+    # docs/results/nislam.md, "Loop rotation measured").
     assert row["rms_deg"] < 0.1 and row["max_deg"] >= row["median_deg"]

@@ -52,7 +52,7 @@ def test_imu_attitude_loop_lowers_error_with_its_rotation_measured():
     # With the IMU attitude the odometry stays within 0.42 cm here. A loop edge that keeps the
     # attitude's rotation moved it to 0.50 (the heading the gyro drifted stays in the graph); with
     # the loop's rotation measured over the old keyframe's map (loop.visual_rotation) it falls to
-    # 0.24 (README "Loop rotation measured"; 0.25 since the compensation goes on through the loop).
+    # 0.24 (docs/results/nislam.md, "Loop rotation measured"; 0.25 since the compensation goes on through the loop).
     seq = generate_sequence(SyntheticConfig(frames=100, fps=10.0, trajectory="loop", seed=0, period=9.0, **SMALL))
     with_loop, a_loop = _run(seq, attitude="imu")
     without, a_none = _run(seq, attitude="imu", loop={"enabled": False})

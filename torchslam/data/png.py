@@ -1,6 +1,6 @@
 """A fast path for decoding the PNG images of RGB-D datasets.
 
-Decoding is a large share of a frame's CPU time (README, "PNG decoding"): a 640x480 colour PNG
+Decoding is a large share of a frame's CPU time (docs/results/gcslam.md, "PNG decoding"): a 640x480 colour PNG
 of TUM RGB-D takes about 6.6 ms in OpenCV and its 16-bit depth PNG 3.7 ms, nearly all of it in
 zlib's inflate. This module inflates with ISA-L (``isal``, about 3x faster) and undoes the PNG
 row filters with one running sum per byte lane (torch's scan, or NumPy's), for the simple images
@@ -121,7 +121,7 @@ def _running_sum(pixels: np.ndarray) -> np.ndarray:
     Torch's scan where it runs on the calling thread alone (one intra-op thread, a run's
     default): about 5 x NumPy's uint8 ``cumsum`` over a 640x480 image (0.4 against 2.0 ms for
     colour). With more intra-op threads the scan would wake torch's pool from the loader's
-    thread, which stalls beside a busy process (README, "Threads"), so NumPy's runs there. Sums
+    thread, which stalls beside a busy process (docs/results/cpu.md, "Threads"), so NumPy's runs there. Sums
     modulo 256 do not depend on the order of the additions: both give the same bytes.
     """
     if torch.get_num_threads() == 1:

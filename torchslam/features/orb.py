@@ -62,7 +62,7 @@ class ORBConfig:
             extractor lowers its threshold from 20 to 7 the same way, per image cell). At or above
             ``fast_threshold`` it is off.
         retry_below: the share of ``n_features`` below which an image is detected again: a tenth,
-            too few corners to register a frame by (README, "Blurred frames detected again");
+            too few corners to register a frame by (docs/results/gcslam.md, "Blurred frames detected again");
             an image with more keeps its corners at ``fast_threshold``.
     """
 

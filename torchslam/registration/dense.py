@@ -200,7 +200,7 @@ class DenseConfig:
             only confirms it: 1e-3 (1 mm, 1 mrad) keeps one step for nearly every pair (about 1.03
             instead of 2.3 warps at that level on TUM fr1/xyz) and iterates on only where the
             first step was large, i.e. under fast motion. Against 3e-4 registration runs about
-            1.2 x faster for the same ATE (at ``tol`` 3e-4; ``scripts/bench_dense.py``; README,
+            1.2 x faster for the same ATE (at ``tol`` 3e-4; ``scripts/bench_dense.py``; docs/results/gcslam.md,
             Results: GC-SLAM). A hard cap of one step there (``iterations[-1] = 1``) is as fast
             but loses those cases (HoloLens at every third frame 0.85 -> 1.49 cm).
     """
@@ -1359,7 +1359,7 @@ def _register_each(fi: DenseFrame, fj: DenseFrame, T: Tensor, cfg: DenseConfig) 
     The batched path's arrays of B pairs are B times the working set of one: on the CPU the
     pairs' fresh memory, the padded pixel lists and the element-wise selections over (B, 7, N)
     rows cost more than the per-pair bookkeeping saves (5 loop pairs of fr1/xyz: about 1.3 x
-    faster warm, about 3 x inside a run; README, "Loop pairs registered one by one"). The
+    faster warm, about 3 x inside a run; docs/results/gcslam.md, "Loop pairs registered one by one"). The
     poses agree with the batched path's to rounding.
     """
     parts = [_register(fi[k], fj[k], T[k : k + 1], cfg) for k in range(len(fi))]

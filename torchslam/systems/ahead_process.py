@@ -5,7 +5,7 @@ thread and the thread that prepares frames ahead. Each of their NumPy, OpenCV an
 releases the lock and takes it back, and every take-back while tracking holds it is a hand-over
 that tracking waits for: a sparse tracking registration takes 1.3 x as long beside a thread
 extracting ORB features and 1.5 x beside one decoding frames, and the same work in another
-process costs it nothing measurable (``scripts/bench_contention.py``, README "What slows
+process costs it nothing measurable (``scripts/bench_contention.py``, docs/results/cpu.md, "What slows
 tracking on two cores"). Here a child process forked after the system's ``start`` reads the
 frames (decoding them) and runs the system's ``ahead_payload`` on each; the parent receives the
 frame and its payload and hands them to ``accept_ahead``.

@@ -39,7 +39,7 @@ class GCSlamConfig:
         orb_min_fast_threshold: FAST threshold of a starved frame (strong motion blur, dim
             light): one with fewer than a tenth of ``orb_features`` keypoints at OpenCV's threshold
             of 20 is detected again at this one (ORB-SLAM's 7; torchslam's, beyond the paper; 20
-            or more: off). ``features.ORBConfig.min_fast_threshold``; README, "Blurred frames
+            or more: off). ``features.ORBConfig.min_fast_threshold``; docs/results/gcslam.md, "Blurred frames
             detected again".
         sparse: sparse registration settings (isometry filter, RANSAC, refinement).
         dense: dense registration settings (320x240 pyramid).
@@ -63,13 +63,13 @@ class GCSlamConfig:
             fewer than 3 are known (a run's first registrations), and the one with the lower
             residual is kept (torchslam's; 0: off). A wrong basin
             keeps its correspondences (the depth still overlaps) but not its photometric fit:
-            README, "Dense registrations started again from ORB at an outlying residual".
+            docs/results/gcslam.md, "Dense registrations started again from ORB at an outlying residual".
         dense_orb_keyframe_check: with ``dense_orb_start``, a dense registration that makes its
             frame a keyframe (the graph's odometry link) is checked against the frame's ORB
             registration to the keyframe (brute-force matching, independent of the start): where
             the two poses place the ORB inliers more than ``sparse.inlier_threshold`` apart on
             average, the dense registration is started again from the ORB pose and the one with
-            the lower photometric residual is kept (torchslam's). README, "Keyframe links
+            the lower photometric residual is kept (torchslam's). docs/results/gcslam.md, "Keyframe links
             checked against ORB".
         mild: loop detector settings (16 tables of 16-bit substrings, top 5 candidates).
         loops: look for loop closures at every new keyframe.
@@ -79,7 +79,7 @@ class GCSlamConfig:
             they are tested. A keyframe without candidates adds one node linked by one pair (a
             leaf), placed by that pair's registration, which leaves the optimum of the rest of
             the graph where it was; the loop test's trial optimisation, and the final run,
-            optimise everything (README, "FastGO only before a loop test").
+            optimise everything (docs/results/gcslam.md, "FastGO only before a loop test").
         loop_iterations: iterations of the trial optimisation that tests loop candidates.
         loop_threshold: reject loops that raise the RMS registration error of the earlier pairs
             by more than this fraction (released code: 5 %) plus ``loop_slack_m``.
@@ -110,7 +110,7 @@ class GCSlamConfig:
         spread_corrections: in the trajectory, the frames tracked against a keyframe follow the
             correction the optimisation made to the link from that keyframe to the next one, in
             proportion to their time along it (``FrameLog.poses``' ``spread``; beyond the paper,
-            whose frames move with their keyframe alone). Keyframe poses are unchanged. README,
+            whose frames move with their keyframe alone). Keyframe poses are unchanged. docs/results/gcslam.md,
             "Frames between keyframes follow both".
         interpolation_max_gap: largest gap between depth instants across which the trajectory is
             interpolated to the colour timestamps, seconds.
@@ -133,13 +133,13 @@ class GCSlamConfig:
             correspondences' statistics; where the dense registration fails the ORB one stays.
             ``"auto"``: ``dense`` with either front-end (the dense one's tracked pairs are dense
             already, so there it measures its loops and relocalised keyframes densely, the loops
-            at their ORB weight, ``loop_pair_weight``: README, "Densely measured loops weighted
+            at their ORB weight, ``loop_pair_weight``: docs/results/gcslam.md, "Densely measured loops weighted
             as their ORB registration").
         loop_pair_weight: the weight in FastGO of a loop measured densely (``keyframe_pairs``).
             ``"correspondences"``: its dense correspondences' own (FastGO weighs a pair by its
             weighted correspondence count, tens of thousands for a dense pair); ``"orb"``
             (beyond the paper): its statistics scaled to the total weight of the loop's ORB
-            registration, i.e. the dense pose with the ORB pair's pull (README, "Densely measured
+            registration, i.e. the dense pose with the ORB pair's pull (docs/results/gcslam.md, "Densely measured
             loops weighted as their ORB registration"); ``"auto"``: ``orb`` with the dense
             front-end, ``correspondences`` with the sparse one.
         depth_refine_points: sparse front-end (beyond the paper): each frame's ORB registration to
@@ -147,7 +147,7 @@ class GCSlamConfig:
             at a lattice of about this many pixels (DVO's geometric residual) together with the
             ORB inliers (:func:`~torchslam.registration.depth_align.refine_with_depth`). 0: the
             ORB pose as registered. Frame-to-frame error (RPE over one frame) was lower on every
-            real and synthetic sequence measured (TUM fr1/xyz 4.85 -> 3.63 mm); README, "Sparse
+            real and synthetic sequence measured (TUM fr1/xyz 4.85 -> 3.63 mm); docs/results/gcslam.md, "Sparse
             poses refined against the keyframe's depth". Chosen before measuring, not tuned.
         depth_refine_iterations: Gauss-Newton steps of that refinement.
     """

@@ -51,7 +51,7 @@ class LoopConfig:
         orb_features: ORB features kept per keyframe (the paper: 1000).
         min_separation: candidates must be at least this many keyframes older (3: a camera
             sweeping back and forth over one place, as on TUM fr1/xyz, meets its own keyframes
-            of the last sweep two or three keyframes back; README, "Loops on revisits").
+            of the last sweep two or three keyframes back; docs/results/nislam.md, "Loops on revisits").
         top_k: candidates verified per new keyframe.
         min_score: smallest place-recognition score of a candidate.
         min_psr: smallest KCC PSR for a verified loop.
@@ -98,7 +98,7 @@ class LoopConfig:
             depth (``NISlam._information``); and a loop edge allows for a drift common to the
             odometry edges (``drift_per_metre``). Eq. (19) is the spread of the whole correlation
             response, widest at the keyframe rule's last match, and says nothing of that match's
-            error (``scripts/bench_loops.py --only nees``; README, NI-SLAM loop acceptance).
+            error (``scripts/bench_loops.py --only nees``; docs/results/nislam.md, "NI-SLAM loop acceptance").
         jitter_variance_scale: the square of how many times the frames' jitter an odometry
             edge errs by (calibrated by the normalised estimation error of odometry edges).
         min_jitter_frames: fewest tracked frames against a keyframe for the "jitter" variance.
@@ -140,7 +140,7 @@ class LoopConfig:
             rotation errs 0.63-0.66° RMS (synthetic: 0.01-0.04°), but its rotation and
             translation err together, and a floor at the real figure (0.7) let the graph keep
             the refined translation with another rotation, which was worse on the tuning
-            sequences (README, "Loop rotation measured").
+            sequences (docs/results/nislam.md, "Loop rotation measured").
     """
 
     enabled: bool = True
@@ -259,7 +259,7 @@ class NISlamConfig:
             elsewhere the thread), which shares no interpreter lock with tracking
             (``systems.ahead_process``), or ``"thread"`` (the default here: a frame's input
             and back-projected cloud cost more to copy between the processes than the lock's
-            hand-overs cost tracking; README "Frames read and prepared in a child process").
+            hand-overs cost tracking; docs/results/cpu.md, "Frames read and prepared in a child process").
             The same results either way.
         kcc: correlator, keyframe and fusion settings. The paper's values except
             ``depth_median_center``, on here: with the paper's depth test, any motion along the
@@ -267,7 +267,7 @@ class NISlamConfig:
             breaks tracking on hand-held sequences; and ``depth_statistic``, "median" here
             (``depth_translation``); and ``masked_kernel``, on here: the kernel distance over the
             pixels both images hold, so the sensor's holes, which move with the camera, do not
-            pull each match towards no motion (README "masked-kernel-windows"). ``kcc.T_K`` and
+            pull each match towards no motion (docs/results/nislam.md#masked-kernel-windows). ``kcc.T_K`` and
             ``kcc.T_M`` are read, with ``max_jump_m``,
             ``lost_uses_prior`` and ``lost_agree_m``, by the keyframe policy (``policy.KeyframePolicy``).
         loop: loop closure settings.
