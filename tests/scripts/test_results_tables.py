@@ -75,3 +75,19 @@ def test_the_stored_speed_rows_are_medians_of_both_checkouts():
     line = rt.speed_table(idle, {"rows": []}).splitlines()[2]
     assert line.startswith(f"| NI-SLAM | fr1/xyz | {sorted(runs)[2] / 2 + sorted(runs)[3] / 2:.1f} (")
     assert line.endswith("| – | " + f"{row['ratio']:.2f} / – |")
+
+
+def test_run_calls_existing_scripts_with_flags_they_take(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(rt.subprocess, "run", lambda cmd, check: calls.append(cmd))
+    rt.run_all(tmp_path / "out")
+    assert len(calls) == 7 and (tmp_path / "out").is_dir()
+    for cmd in calls:
+        script = Path(cmd[1])
+        assert script.parent == REPO_ROOT / "scripts" and script.exists(), cmd
+        # Each flag is one of the script's own argparse options (declared as a string literal).
+        source = script.read_text()
+        flags = [a for a in cmd[2:] if a.startswith("--")]
+        assert flags and all(f'"{f}"' in source for f in flags), (script.name, [f for f in flags if f'"{f}"' not in source])
+        outs = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--out"]
+        assert outs and all(o.startswith(str(tmp_path / "out")) for o in outs)
