@@ -1,6 +1,7 @@
 """The intra-op thread setting: precedence, validation, what it applies and what runs record."""
 
 import json
+from pathlib import Path
 
 import cv2
 import pytest
@@ -117,3 +118,35 @@ def test_synth_takes_the_variable_too(tmp_path, monkeypatch, capsys):
     assert main(["synth", "--out", str(tmp_path / "s"), "--frames", "2"]) == 2
     assert f"{THREADS_ENV}: expected a whole number of threads >= 1, got '0'" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
+def test_name_os_thread_names_the_calling_thread_only():
+    import threading
+
+    from torchslam.threads import name_os_thread
+
+    seen = {}
+
+    def work():
+        seen["set"] = name_os_thread("tslam-a-very-long-name")
+        seen["comm"] = Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip()
+
+    before = Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text()
+    t = threading.Thread(target=work)
+    t.start()
+    t.join()
+    assert seen == {"set": True, "comm": "tslam-a-very-lo"}  # cut to the kernel's 15 bytes
+    assert Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text() == before  # this thread kept its name
+
+
+def test_name_os_thread_reports_failure(monkeypatch):
+    import builtins
+
+    from torchslam.threads import name_os_thread
+
+    def refuse(*a, **k):
+        raise PermissionError("read-only /proc")
+
+    monkeypatch.setattr(builtins, "open", refuse)
+    assert name_os_thread("x") is False

@@ -20,6 +20,7 @@ in torchslam (no BLAS calls), so OpenBLAS's pool is never entered; the inter-op 
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ __all__ = [
     "ThreadSetting",
     "apply_threads",
     "available_cpus",
+    "name_os_thread",
     "parse_threads",
     "policy_setting",
     "policy_threads",
@@ -143,3 +145,21 @@ def setup_threads(
     setting = resolve_threads(flag, environ, flag_name, cpus)
     apply_threads(setting)
     return setting
+
+
+def name_os_thread(name: str) -> bool:
+    """Give the calling thread ``name`` where the operating system shows it (``top -H``, ``ps -L``).
+
+    Python names its threads for itself only; the kernel lists every thread of a run as the
+    program's name. torchslam names the threads and child processes it starts (``tslam-...``), so
+    that a look at a running job, or ``scripts/bench_cpu.py``, tells which part uses the CPU.
+    Linux only (``/proc/self/task/<id>/comm``, at most 15 bytes, longer names are cut); elsewhere,
+    or when it cannot be written, nothing changes. Returns whether the name was set.
+    """
+    encoded = name.encode("utf-8", "replace")[:15]
+    try:
+        with open(f"/proc/self/task/{threading.get_native_id()}/comm", "wb") as f:
+            f.write(encoded)
+    except OSError:
+        return False
+    return True

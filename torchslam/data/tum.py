@@ -60,6 +60,7 @@ from torch import Tensor
 from ..errors import ConfigError, DataFormatError
 from ..geometry import PinholeCamera
 from ..imu import AttitudeStream, ImuData, ahrs_attitude, start_up
+from ..threads import name_os_thread
 from .calibration import Calibration, colour_to_depth_maps, resolve_calibration
 from .frame import Frame, associate_timestamps
 from .png import available as png_available
@@ -569,6 +570,7 @@ class TUMSequence:
         done = object()
 
         def work() -> None:
+            name_os_thread("tslam-decode")
             try:
                 for i in range(len(self)):
                     while not slots.acquire(timeout=0.05):

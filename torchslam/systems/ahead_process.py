@@ -35,6 +35,7 @@ import torch
 
 from ..data.frame import Frame
 from ..errors import TorchSlamError
+from ..threads import name_os_thread
 
 logger = logging.getLogger(__name__)
 
@@ -198,6 +199,7 @@ class ProcessSource:
 
 def _child(system, source, sequence, conn, free, stop, bufs, cv_threads: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent stops, then stops this process
+    name_os_thread("tslam-ahead")
     # One intra-op thread whatever the parent's: OpenMP's thread pool does not survive a fork, and
     # a child that ran its parallel regions on the parent's count waited forever in libgomp for
     # workers that were never forked (``torchslam run --system gcslam --threads 2`` hung once the

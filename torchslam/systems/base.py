@@ -23,6 +23,7 @@ from torch import Tensor
 from ..data.frame import Frame, Sequence
 from ..data.trajectory import Trajectory
 from ..errors import ConfigError
+from ..threads import name_os_thread
 from .ahead_process import ProcessSource
 from .ahead_process import available as process_available
 from .memory import check_run_memory
@@ -437,6 +438,7 @@ class AheadFrames:
             close()
 
     def _work(self) -> None:
+        name_os_thread("tslam-prepare")
         while True:
             while not self._slots.acquire(timeout=0.05):
                 if self._stop.is_set():

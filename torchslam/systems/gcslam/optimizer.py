@@ -44,6 +44,7 @@ from ...fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closur
 from ...loop import MILDDatabase
 from ...registration.dense import DenseFrame, DenseImages, register_dense_frames
 from ...registration.sparse import FrameFeatures, register_sparse_batch
+from ...threads import name_os_thread
 from .. import pickling as messages
 from ..base import add_stage_ms
 from ..monitor import Monitor
@@ -298,6 +299,7 @@ class Worker:
             self.thread.start()
 
     def _loop(self) -> None:
+        name_os_thread("tslam-optimizer")
         while True:
             ev = self.queue.get()
             if ev is None:
@@ -357,6 +359,7 @@ class _ScalarLog(Monitor):
 
 def _read_events(conn, inbox: queue.Queue) -> None:
     """The child's reader thread: keyframe events into ``inbox`` as they arrive, then None."""
+    name_os_thread("tslam-opt-inbox")
     try:
         while True:
             ev = messages.loads(conn.recv_bytes())
@@ -379,6 +382,7 @@ def _serve(conn, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEven
     # Ctrl-C reaches the whole process group: the parent stops tracking and joins, and the child
     # finishes the keyframes it was given.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    name_os_thread("tslam-optimizer")
     torch.set_num_threads(1)  # small operations only; and the parent's thread pool is not inherited
     log = _ScalarLog()
     optimizer.monitor = log
@@ -404,6 +408,7 @@ def _serve(conn, optimizer: Optimizer, insert: Callable[[Optimizer, KeyframeEven
 
 def _receive(conn, process, inbox: queue.Queue) -> None:
     """The parent's receiver thread: the child's messages into ``inbox`` until its last one."""
+    name_os_thread("tslam-opt-recv")
     while True:
         try:
             msg = messages.loads(conn.recv_bytes())
