@@ -67,27 +67,25 @@ def nislam_table(result: dict) -> str:
     rows = _split_order([r for r in result["accuracy"] if r["setting"] == "default"], "group", "sequence")
     out = ["| split | sequence | attitude | frames | keyframes | loops | ATE (cm) | RPE 1 / 10 / 30 frames (mm) | frames/s end to end / front-end |",
            "|---|---|---|---:|---:|---:|---:|---|---|"]
-    synthetic: dict[str, list[dict]] = {}
-    for r in rows:
-        if _synthetic_seed(r["sequence"]) is not None:
-            synthetic.setdefault(r["group"], []).append(r)
-            continue
-        ate = f"{100 * r['ate_rmse_m']:.2f}"
-        if r.get("paper_ate_rmse_m"):
-            ate = f"**{ate}** (paper {100 * r['paper_ate_rmse_m']:.1f})"
-        rpe = " / ".join("–" if v is None else f"{v:.1f}" for v in r["rpe_rmse_mm"].values())
-        out.append(f"| {SPLITS[r['group']]} | {display(r['sequence'])} | {r['attitude']} | {r['frames']} | {r['keyframes']} | "
-                   f"{r['loops_accepted']} | {ate} | {rpe} | {r['fps_end_to_end']:.1f} / {r['fps_frontend']:.1f} |")
-    for group, syn in synthetic.items():
-        seeds = " / ".join(_synthetic_seed(r["sequence"]) for r in syn)
-        frames = {r["frames"] for r in syn}
-        frames_text = f"{frames.pop()} each" if len(frames) == 1 else " / ".join(str(r["frames"]) for r in syn)
-        ates = " / ".join(f"{100 * r['ate_rmse_m']:.2f}" for r in syn)
-        attitudes = " / ".join(sorted({r["attitude"] for r in syn}))
-        line = f"| {SPLITS[group]} | synthetic {seeds} | {attitudes} | {frames_text} | | | {ates} | | |"
-        # Synthetic rows go after their split's real ones.
-        last = max((i for i, l in enumerate(out) if l.startswith(f"| {SPLITS[group]} |")), default=len(out) - 1)
-        out.insert(last + 1, line)
+    for group in dict.fromkeys(r["group"] for r in rows):  # in order: tuning, then held out
+        members = [r for r in rows if r["group"] == group]
+        for r in members:
+            if _synthetic_seed(r["sequence"]) is not None:
+                continue
+            ate = f"{100 * r['ate_rmse_m']:.2f}"
+            if r.get("paper_ate_rmse_m"):
+                ate = f"**{ate}** (paper {100 * r['paper_ate_rmse_m']:.1f})"
+            rpe = " / ".join("–" if v is None else f"{v:.1f}" for v in r["rpe_rmse_mm"].values())
+            out.append(f"| {SPLITS[group]} | {display(r['sequence'])} | {r['attitude']} | {r['frames']} | {r['keyframes']} | "
+                       f"{r['loops_accepted']} | {ate} | {rpe} | {r['fps_end_to_end']:.1f} / {r['fps_frontend']:.1f} |")
+        syn = [r for r in members if _synthetic_seed(r["sequence"]) is not None]
+        if syn:  # the split's synthetic seeds in one row, after its real sequences
+            seeds = " / ".join(_synthetic_seed(r["sequence"]) for r in syn)
+            frames = {r["frames"] for r in syn}
+            frames_text = f"{frames.pop()} each" if len(frames) == 1 else " / ".join(str(r["frames"]) for r in syn)
+            ates = " / ".join(f"{100 * r['ate_rmse_m']:.2f}" for r in syn)
+            attitudes = " / ".join(sorted({r["attitude"] for r in syn}))
+            out.append(f"| {SPLITS[group]} | synthetic {seeds} | {attitudes} | {frames_text} | | | {ates} | | |")
     means = []
     for group in ("tuning", "held-out"):
         vals = [100 * r["ate_rmse_m"] for r in rows if r["group"] == group]

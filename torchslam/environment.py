@@ -4,23 +4,29 @@ from __future__ import annotations
 
 import os
 import platform
-from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["cpu_model", "environment_info"]
+__all__ = ["cpu_model", "cpuinfo_field", "environment_info"]
+
+
+def cpuinfo_field(key: str) -> str | None:
+    """The value of ``/proc/cpuinfo``'s first ``key : value`` line (Linux), or None where there is none."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                name, sep, value = line.partition(":")
+                if sep and name.strip() == key:
+                    return value.strip()
+    except OSError:
+        pass
+    return None
 
 
 def cpu_model() -> str:
     """The CPU's model name (from ``/proc/cpuinfo`` on Linux), or what ``platform`` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
+    return cpuinfo_field("model name") or platform.processor() or "unknown"
 
 
 def environment_info() -> dict[str, Any]:

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from ..devices import index_select
+from ..environment import cpuinfo_field
 from ..errors import ConfigError, DTypeError, ShapeError, check_shape, parse_choice
 
 __all__ = [
@@ -143,14 +144,8 @@ def _cpu_flags() -> frozenset[str] | None:
     """This x86 CPU's feature flags from ``/proc/cpuinfo`` (Linux), or None where they cannot be read."""
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return frozenset(line.partition(":")[2].split())
-    except OSError:
-        pass
-    return None
+    flags = cpuinfo_field("flags")
+    return None if flags is None else frozenset(flags.split())
 
 
 def _int8_may_be_fast() -> bool:
