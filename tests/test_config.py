@@ -105,14 +105,15 @@ def test_nislam_fast_preset_changes_only_the_pixel_stride():
     assert {k for k in a if a[k] != b[k]} == {"pixel_stride"}
 
 
-def test_nislam_faster_preset_changes_only_stride_and_orthographic_size():
+def test_nislam_faster_preset_changes_only_stride_orthographic_size_and_where_frames_are_prepared():
     from torchslam.config import config_to_dict
     from torchslam.systems.nislam import NISlamConfig
 
     fast = load_config(NISlamConfig, REPO_ROOT / "configs" / "nislam_faster.yaml")
     assert (fast.pixel_stride, fast.kcc.ortho_height, fast.kcc.ortho_width) == (2, 240, 320)
+    assert fast.prepare_ahead_in == "process"  # the same trajectory as on a thread (tests/systems/test_ahead_process.py)
     a, b = config_to_dict(fast), config_to_dict(NISlamConfig())
-    assert {k for k in a if a[k] != b[k]} == {"pixel_stride", "kcc"}
+    assert {k for k in a if a[k] != b[k]} == {"pixel_stride", "prepare_ahead_in", "kcc"}
     assert {k for k in a["kcc"] if a["kcc"][k] != b["kcc"][k]} == {"ortho_height", "ortho_width"}
 
 

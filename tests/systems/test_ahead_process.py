@@ -211,13 +211,14 @@ def test_frames_the_childs_reading_skipped_are_counted_as_in_this_process(tmp_pa
     assert metrics["process"]["ate_rmse_m"] == metrics["thread"]["ate_rmse_m"]
 
 
-def test_nislam_gives_the_same_trajectory_prepared_in_a_process_as_on_a_thread():
+@pytest.mark.parametrize("stride", [1, 2])  # 2: the strided clouds of the nislam_fast(er) presets
+def test_nislam_gives_the_same_trajectory_prepared_in_a_process_as_on_a_thread(stride):
     from torchslam.systems.nislam import NISlam, NISlamConfig
 
     seq = generate_sequence(SyntheticConfig(frames=30, trajectory="orbit", seed=6, **SMALL))
     out = {}
     for where in ("process", "thread"):
-        system = NISlam(config_from_dict(NISlamConfig, {"prepare_ahead_in": where}))
+        system = NISlam(config_from_dict(NISlamConfig, {"prepare_ahead_in": where, "pixel_stride": stride}))
         out[where] = run_sequence(system, seq).output
         assert system.prepares_ahead_in_process == (where == "process")
         assert out[where].stage_ms["backproject"] > 0
