@@ -7,6 +7,7 @@ reading skipped must reach the parent's sequence; ``close`` must stop the child;
 results must be exactly those of the thread and of no preparation ahead.
 """
 
+import io
 import json
 import os
 
@@ -19,7 +20,7 @@ from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
 from torchslam.systems import ahead_process, run_sequence
-from torchslam.systems.ahead_process import dumps, loads
+from torchslam.systems.ahead_process import _SlotPickler, dumps, loads
 from torchslam.systems.base import AheadFrames
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 
@@ -53,6 +54,44 @@ def test_tensors_travel_with_their_values_in_memory_of_their_own():
     assert back["again"] is back["image"] and back["view"][0] is back["image"]
     buf[:] = 0  # the slot is reused for the next frame: what was loaded must not change
     assert torch.equal(back["image"], image) and torch.equal(back["double"], obj["double"])
+
+
+def test_views_of_one_storage_travel_once_and_stay_views_of_it():
+    # A frame's image and the views its payload holds (a batch dimension, every 2nd pixel, a
+    # reinterpretation of its bits): the storage's bytes are written once, and after loading the
+    # views share memory as in the writer.
+    image = torch.rand(3, 48, 64, generator=torch.Generator().manual_seed(1))
+    obj = {"image": image, "batch": image[None], "strided": image[:, ::2, ::2], "bits": image.view(torch.int32),
+           "row": image[1]}
+    buf = np.zeros(1 << 16, dtype=np.uint8)
+    pickler = _SlotPickler(io.BytesIO(), buf)
+    pickler.dump(obj)
+    assert pickler.used == image.numel() * 4  # one storage
+    back = loads(dumps(obj, buf), buf)
+    for key, value in obj.items():
+        assert back[key].dtype == value.dtype and back[key].stride() == value.stride() and torch.equal(back[key], value), key
+    ptr = back["image"].untyped_storage().data_ptr()
+    assert all(back[k].untyped_storage().data_ptr() == ptr for k in obj)
+    back["image"][0, 0, 0] = -1.0  # they alias as in the writer
+    assert float(back["batch"][0, 0, 0, 0]) == -1.0 and float(back["strided"][0, 0, 0]) == -1.0
+
+
+def test_a_small_view_of_a_large_storage_travels_alone():
+    big = torch.randn(64, 1000)
+    row = big[3]  # a row of a large batch: sent as its own 4 kB, not the batch's 256 kB
+    buf = np.zeros(1 << 16, dtype=np.uint8)
+    pickler = _SlotPickler(io.BytesIO(), buf)
+    pickler.dump(row)
+    assert pickler.used == 4000
+    back = loads(dumps(row, buf), buf)
+    assert torch.equal(back, row) and back.is_contiguous()
+
+
+def test_conjugate_views_keep_their_values():
+    z = torch.complex(torch.randn(5), torch.randn(5))
+    buf = np.zeros(1 << 12, dtype=np.uint8)
+    back = loads(dumps((z, z.conj()), buf), buf)
+    assert torch.equal(back[0], z) and torch.equal(back[1].resolve_conj(), z.conj().resolve_conj())
 
 
 def test_a_tensor_larger_than_the_slot_travels_inside_the_pickle():

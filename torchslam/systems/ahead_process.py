@@ -11,10 +11,13 @@ frames (decoding them) and runs the system's ``ahead_payload`` on each; the pare
 frame and its payload and hands them to ``accept_ahead``.
 
 Tensors travel through a few shared-memory slots mapped before the fork, in turn: the child
-writes a frame's tensors into the next free slot and sends a small pickle that refers to them;
-the parent copies them out into fresh tensors and frees the slot. A tensor that does not fit its
-slot travels inside the pickle instead (slower, the same values). The parent gets the very
-values the child computed, so a run gives the same results as with the thread (tested).
+writes the memory (storage) of a frame's tensors into the next free slot, each storage once
+however many tensors view it (a frame's image and the batch view of it that the payload holds),
+and sends a small pickle that refers to them; the parent copies each storage out into fresh
+memory, rebuilds every tensor as the same view of it, and frees the slot. A storage that does
+not fit its slot travels inside the pickle instead (slower, the same values). The parent gets
+the very values the child computed, viewed as in the child, so a run gives the same results as
+with the thread (tested).
 """
 
 from __future__ import annotations
@@ -51,51 +54,70 @@ def available() -> bool:
 
 
 class _SlotPickler(pickle.Pickler):
-    """Pickles CPU tensors by reference to their bytes, written into ``buf``."""
+    """Pickles CPU tensors by reference: each storage's bytes written once into ``buf``, each
+    tensor as its view of them (dtype, shape, strides, offset)."""
 
     def __init__(self, file, buf: np.ndarray) -> None:
         super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
         self.buf = buf
         self.used = 0
-        self.seen: dict[int, tuple] = {}
-        self.keep: list[torch.Tensor] = []  # the tensors whose ids are in ``seen`` stay alive
+        self.storages: dict[int, tuple[int, int, int]] = {}  # storage address -> (key, start, nbytes)
+        self.keep: list[torch.Tensor] = []  # the tensors whose storages are in ``storages`` stay alive
 
     def persistent_id(self, obj: Any):
         if type(obj) is not torch.Tensor or obj.device.type != "cpu" or obj.requires_grad or obj.is_sparse:
             return None
-        pid = self.seen.get(id(obj))
-        if pid is not None:
-            return pid  # the same tensor object twice (a frame's image and its view's): one copy
-        t = obj.detach().contiguous()
-        nbytes = t.numel() * t.element_size()
-        start = -(-self.used // _ALIGN) * _ALIGN
-        if start + nbytes > len(self.buf):
-            return None  # pickled by value
-        if nbytes:
-            torch.from_numpy(self.buf[start : start + nbytes]).copy_(t.reshape(-1).view(torch.uint8))
-        pid = ("tensor", len(self.seen), start, nbytes, str(t.dtype).removeprefix("torch."), tuple(t.shape))
-        self.seen[id(obj)] = pid
-        self.keep.append(obj)
-        self.used = start + nbytes
-        return pid
+        if obj.layout != torch.strided:
+            return None
+        t = obj.detach()
+        if t.is_conj() or t.is_neg():
+            t = t.resolve_conj().resolve_neg()  # the flags are not in the bytes
+        storage = t.untyped_storage()
+        nbytes = storage.nbytes()
+        known = self.storages.get(storage.data_ptr()) if nbytes else None
+        if known is None and (nbytes > 2 * t.numel() * t.element_size() + _ALIGN or nbytes % t.element_size()):
+            # A storage much larger than its tensor (a row of a big batch) is not sent whole: the
+            # tensor travels as a contiguous copy (so does one whose dtype does not tile its storage).
+            t = t.contiguous().clone()
+            storage = t.untyped_storage()
+            nbytes = storage.nbytes()
+        if known is None:
+            start = -(-self.used // _ALIGN) * _ALIGN
+            if start + nbytes > len(self.buf):
+                return None  # pickled by value
+            if nbytes:
+                raw = torch.empty(0, dtype=torch.uint8).set_(storage)
+                torch.from_numpy(self.buf[start : start + nbytes]).copy_(raw)
+            known = (len(self.keep), start, nbytes)  # a key of its own, empty storages too
+            if nbytes:
+                self.storages[storage.data_ptr()] = known
+            self.keep.append(t)
+            self.used = start + nbytes
+        key, start, nbytes = known
+        dtype = str(t.dtype).removeprefix("torch.")
+        return ("view", key, start, nbytes, dtype, tuple(t.shape), tuple(t.stride()), t.storage_offset())
 
 
 class _SlotUnpickler(pickle.Unpickler):
-    """Rebuilds the tensors ``_SlotPickler`` wrote into ``buf``, each copied into its own memory."""
+    """Rebuilds the tensors ``_SlotPickler`` wrote into ``buf``: each storage copied into memory
+    of its own, once, and each tensor the same view of it as in the writer."""
 
     def __init__(self, file, buf: np.ndarray) -> None:
         super().__init__(file)
         self.buf = buf
-        self.made: dict[int, torch.Tensor] = {}
+        self.made: dict[int, torch.Tensor] = {}  # key -> the storage's bytes, (nbytes,) uint8
+        self.views: dict[tuple, torch.Tensor] = {}  # the same view twice: one tensor object
 
     def persistent_load(self, pid):
-        kind, key, start, nbytes, dtype, shape = pid
-        if kind != "tensor":
+        kind, key, start, nbytes, dtype, shape, stride, offset = pid
+        if kind != "view":
             raise pickle.UnpicklingError(f"unknown reference {kind!r}")
-        t = self.made.get(key)
+        t = self.views.get(pid)
         if t is None:
-            raw = torch.from_numpy(self.buf[start : start + nbytes]).clone()
-            t = self.made[key] = raw.view(getattr(torch, dtype)).reshape(shape)
+            raw = self.made.get(key)
+            if raw is None:
+                raw = self.made[key] = torch.from_numpy(self.buf[start : start + nbytes]).clone()
+            t = self.views[pid] = raw.view(getattr(torch, dtype)).as_strided(shape, stride, offset)
         return t
 
 

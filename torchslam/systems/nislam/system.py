@@ -292,11 +292,15 @@ class NISlam:
         t0 = time.perf_counter()
         input = self._frame_input(frame)
         if input is not None:
-            input = replace(input, cloud=backproject([input])[0])
+            # Without the camera, which ``accept_ahead`` puts back: from a child process it would
+            # travel with every frame, with its cached rays (2.5 MB a frame at 640x480).
+            input = replace(input, cloud=backproject([input])[0], camera=None)
         return input, {"backproject": 1000.0 * (time.perf_counter() - t0)}
 
     def accept_ahead(self, frame: Frame, payload: FrameInput | None, stage_ms: dict[str, float]) -> None:
-        """Keep ``frame``'s :meth:`ahead_payload` for its ``prepare``."""
+        """Keep ``frame``'s :meth:`ahead_payload` for its ``prepare`` (with the system's camera)."""
+        if payload is not None:
+            payload = replace(payload, camera=self.camera)
         self._ahead.put(frame, payload, stage_ms)
 
     def _frame_input(self, frame: Frame) -> FrameInput | None:
