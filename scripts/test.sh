@@ -7,18 +7,21 @@
 # `test` extra): on the 2-core development machine it takes about 6 minutes instead of 9.
 # TORCHSLAM_TEST_WORKERS=N sets the number of workers (1: one process, as pytest alone runs it).
 set -euo pipefail
+workers="${TORCHSLAM_TEST_WORKERS:-}"
+if [ "$#" -eq 0 ] && [ -n "$workers" ]; then
+    # Checked before anything is set up or installed.
+    case "$workers" in
+        *[!0-9]*|0|00*) echo "test.sh: TORCHSLAM_TEST_WORKERS=$workers: expected a whole number of workers, 1 or more" >&2; exit 2 ;;
+    esac
+fi
 source "$(dirname "${BASH_SOURCE[0]}")/_setup.sh"
 torchslam_setup test
 cd "$TORCHSLAM_ROOT"
 if [ "$#" -eq 0 ]; then
-    workers="${TORCHSLAM_TEST_WORKERS:-}"
     if [ -z "$workers" ]; then
         # The cores this process may run on, at most 4: each worker holds its own PyTorch.
         workers=$(python -c 'import os; n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1); print(max(1, min(4, n)))')
     fi
-    case "$workers" in
-        ''|*[!0-9]*|0) echo "test.sh: TORCHSLAM_TEST_WORKERS=$workers: expected a whole number of workers, 1 or more" >&2; exit 2 ;;
-    esac
     set -- -q
     if [ "$workers" -gt 1 ]; then
         if python -c 'import xdist' >/dev/null 2>&1; then
