@@ -65,32 +65,27 @@ class _SlotPickler(pickle.Pickler):
         self.keep: list[torch.Tensor] = []  # the tensors whose storages are in ``storages`` stay alive
 
     def persistent_id(self, obj: Any):
-        if type(obj) is not torch.Tensor or obj.device.type != "cpu" or obj.requires_grad or obj.is_sparse:
-            return None
-        if obj.layout != torch.strided:
-            return None
+        if (type(obj) is not torch.Tensor or obj.device.type != "cpu" or obj.requires_grad
+                or obj.layout != torch.strided or obj.numel() == 0):
+            return None  # pickled by value (an empty tensor too: it has no bytes to share)
         t = obj.detach()
         if t.is_conj() or t.is_neg():
             t = t.resolve_conj().resolve_neg()  # the flags are not in the bytes
         storage = t.untyped_storage()
-        nbytes = storage.nbytes()
-        known = self.storages.get(storage.data_ptr()) if nbytes else None
-        if known is None and (nbytes > 2 * t.numel() * t.element_size() + _ALIGN or nbytes % t.element_size()):
-            # A storage much larger than its tensor (a row of a big batch) is not sent whole: the
-            # tensor travels as a contiguous copy (so does one whose dtype does not tile its storage).
-            t = t.contiguous().clone()
-            storage = t.untyped_storage()
-            nbytes = storage.nbytes()
+        known = self.storages.get(storage.data_ptr())
         if known is None:
+            if storage.nbytes() > 2 * t.numel() * t.element_size() + _ALIGN or storage.nbytes() % t.element_size():
+                # A storage much larger than its tensor (a row of a big batch) is not sent whole:
+                # the tensor travels as a contiguous copy (so does one whose dtype does not tile
+                # its storage).
+                t = t.clone(memory_format=torch.contiguous_format)
+                storage = t.untyped_storage()
+            nbytes = storage.nbytes()
             start = -(-self.used // _ALIGN) * _ALIGN
             if start + nbytes > len(self.buf):
                 return None  # pickled by value
-            if nbytes:
-                raw = torch.empty(0, dtype=torch.uint8).set_(storage)
-                torch.from_numpy(self.buf[start : start + nbytes]).copy_(raw)
-            known = (len(self.keep), start, nbytes)  # a key of its own, empty storages too
-            if nbytes:
-                self.storages[storage.data_ptr()] = known
+            torch.from_numpy(self.buf[start : start + nbytes]).copy_(torch.empty(0, dtype=torch.uint8).set_(storage))
+            known = self.storages[storage.data_ptr()] = (len(self.keep), start, nbytes)
             self.keep.append(t)
             self.used = start + nbytes
         key, start, nbytes = known
