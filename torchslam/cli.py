@@ -309,12 +309,17 @@ def _cmd_synth(args) -> int:
 def _add_calibrate_time(sub) -> None:
     p = sub.add_parser(
         "calibrate-time",
-        help="estimate NI-SLAM's attitude_time_offset (attitude stream clock vs camera) from the images",
+        help="estimate NI-SLAM's attitude_time_offset (attitude stream clock vs camera), or with --stream depth "
+        "the depth stream's latency (data.depth_time_offset), from the images",
     )
     p.add_argument("--data", default="synthetic", help="a TUM-layout folder, or 'synthetic' (default)")
+    p.add_argument("--stream", choices=("attitude", "depth"), default="attitude",
+                   help="what to calibrate against the camera: the attitude stream's clock (default), or the depth "
+                   "stream's latency against the colour stream (no attitude needed)")
     p.add_argument("--attitude", default="auto", help="attitude source: auto, imu, simulated or groundtruth (default auto)")
     p.add_argument("--max-offset", type=float, default=0.08, help="search [-max, max], seconds (default 0.08)")
-    p.add_argument("--pairs", type=int, default=60, help="frame pairs registered (default 60)")
+    p.add_argument("--pairs", type=int, default=None,
+                   help="frame pairs registered (default 60; with --stream depth, frames: default 180)")
     p.add_argument("--frame-gap", type=int, default=3, help="pairs are (i, i + gap) (default 3)")
     p.add_argument("--json", action="store_true", help="print JSON with the whole cost curve")
     _add_threads(p)
@@ -332,14 +337,16 @@ def _cmd_calibrate_time(args) -> int:
     allocator = setup_allocator()
     if not args.max_offset > 0:
         raise _ArgError(f"--max-offset {args.max_offset}: expected > 0")
-    if args.pairs < 1 or args.frame_gap < 1:
+    if (args.pairs is not None and args.pairs < 1) or args.frame_gap < 1:
         raise _ArgError(f"--pairs {args.pairs}, --frame-gap {args.frame_gap}: expected >= 1")
+    if args.stream == "depth":
+        return _calibrate_depth_time(args, threads, allocator)
     cfg = config_from_dict(NISlamConfig, {"attitude": args.attitude}, source="--attitude")
     seq = load_sequence(args.data, DataConfig(prefetch=0))
     stream = attitude_stream(seq, cfg)
     est = estimate_attitude_time_offset(
         seq, stream, max_offset=args.max_offset, step=min(0.0025, args.max_offset), frame_gap=args.frame_gap,
-        max_pairs=args.pairs,
+        max_pairs=60 if args.pairs is None else args.pairs,
     )
     if args.json:
         print(strict_dumps({"sequence": seq.name, "attitude_source": stream.source, **est.to_dict(), **threads.to_dict(), **allocator.to_dict()}))
@@ -353,6 +360,36 @@ def _cmd_calibrate_time(args) -> int:
         print("warning: the minimum lies at the edge of the search range; widen --max-offset")
     print(f"use: torchslam run --system nislam --data {args.data} --set attitude={args.attitude} "
           f"--set attitude_time_offset={est.offset:.4f}")
+    return 0
+
+
+def _calibrate_depth_time(args, threads, allocator) -> int:
+    """``calibrate-time --stream depth``: the depth stream's latency (``data.depth_time_offset``)."""
+    from .app.calibrate_time import estimate_depth_time_offset
+    from .app.run import SYNTHETIC, DataConfig, load_sequence
+    from .data.synthetic import SyntheticConfig
+
+    if args.attitude != "auto":
+        raise _ArgError(f"--attitude {args.attitude}: the depth latency is measured without an attitude stream; leave --attitude out")
+    # The built-in synthetic sequence stamps colour and depth alike: nothing to find there but 0.
+    data_cfg = DataConfig(prefetch=0, synthetic=SyntheticConfig(frames=120) if args.data == SYNTHETIC else SyntheticConfig())
+    seq = load_sequence(args.data, data_cfg)
+    est = estimate_depth_time_offset(
+        seq, frames=180 if args.pairs is None else args.pairs, frame_gap=args.frame_gap, max_offset=args.max_offset,
+        step=min(0.0025, args.max_offset),
+    )
+    if args.json:
+        print(strict_dumps({"sequence": seq.name, "stream": "depth", **est.to_dict(), **threads.to_dict(), **allocator.to_dict()}))
+        return 0
+    print(f"sequence          {seq.name}")
+    print("stream            depth (latency against the colour images)")
+    print(f"pairs registered  {est.pairs}")
+    print(f"offset            {est.offset * 1000:+.1f} ms")
+    print(f"rotation RMS      {est.cost_at_zero:.3f} deg at 0 ms, {est.cost_at_offset:.3f} deg at the offset")
+    if est.at_edge:
+        print("warning: the minimum lies at the edge of the search range; widen --max-offset")
+    print(f"use: torchslam run --data {args.data} --set data.depth_time_offset={est.offset:.4f} "
+          "(or data.depth_time_offset=auto to estimate it at every run)")
     return 0
 
 

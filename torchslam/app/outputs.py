@@ -256,6 +256,9 @@ def write_run(
     on_disk = read_tum_trajectory(out / "trajectory.txt") if raw is not None and "trajectory.txt" in written else estimate
     metrics.update(evaluate_against_groundtruth(on_disk, sequence.groundtruth, raw, estimate_at_frames=estimate))
     metrics.update(o.metrics)
+    if hasattr(sequence, "depth_time_offset"):
+        # A TUM folder's depth latency as given, or as ``data.depth_time_offset`` auto estimated it.
+        metrics["depth_time_offset_s"] = float(sequence.depth_time_offset)
     if extra:
         metrics.update(extra)
     metrics["environment"] = environment_info()

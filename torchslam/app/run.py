@@ -15,8 +15,8 @@ import torch
 from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
-from ..data.tum import TUMSequence
-from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, Limit, check_limits
+from ..data.tum import TUMSequence, check_depth_time_offset
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_limits
 from ..allocator import setup_allocator
 from ..threads import setup_threads
 from ..systems.base import check_max_frames, run_sequence
@@ -31,6 +31,8 @@ __all__ = ["DataConfig", "RunOptions", "load_sequence", "resolve_config", "run"]
 logger = logging.getLogger(__name__)
 
 SYNTHETIC = "synthetic"
+#: ``data.depth_time_offset``'s value that estimates the latency from the images.
+AUTO = "auto"
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,13 @@ class DataConfig:
         register_colour: register an unregistered colour image to the depth image where the
             calibration knows the colour camera (``TUMSequence``; 7-Scenes by preset).
         synthetic: the generator's settings when ``--data synthetic``.
+        depth_time_offset: each depth image was taken at its stamp plus this, seconds
+            (``TUMSequence``; the depth stream's latency against the colour stream), or
+            ``"auto"``: estimated from the images when the folder is opened
+            (:func:`~torchslam.app.calibrate_time.estimate_depth_time_offset`, a few seconds),
+            for folders whose depth stamps differ from their colour stamps (unsynchronised
+            streams, as TUM's); a folder that stamps both alike is taken as synchronised (0).
+            Not for ``--data synthetic``, whose latency is ``synthetic.depth_time_offset``.
     """
 
     stride: int = 1
@@ -55,6 +64,7 @@ class DataConfig:
     prefetch: int = 2
     register_colour: bool = True
     synthetic: SyntheticConfig = field(default_factory=SyntheticConfig)
+    depth_time_offset: float | str = 0.0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "stride": AT_LEAST_1, "start": NON_NEGATIVE, "end": NON_NEGATIVE, "max_gap": POSITIVE, "prefetch": NON_NEGATIVE,
@@ -62,6 +72,12 @@ class DataConfig:
 
     def __post_init__(self) -> None:
         check_limits(self)
+        if self.depth_time_offset != AUTO:
+            try:
+                offset = check_depth_time_offset(self.depth_time_offset, "data.depth_time_offset")
+            except ConfigError:
+                raise ConfigError(f"data.depth_time_offset: expected seconds within +-0.5 or '{AUTO}', got {self.depth_time_offset!r}") from None
+            object.__setattr__(self, "depth_time_offset", offset)
 
 
 @dataclass(frozen=True)
@@ -145,11 +161,30 @@ def load_sequence(data: str, cfg: DataConfig, device: str = "cpu") -> Sequence:
     ``pin_memory``): each is copied to the GPU once, without blocking the host.
     """
     if data == SYNTHETIC:
+        if cfg.depth_time_offset == AUTO or cfg.depth_time_offset != 0.0:
+            raise ConfigError("data.depth_time_offset: not for --data synthetic (its depth latency is data.synthetic.depth_time_offset)")
         return generate_sequence(cfg.synthetic)
-    return TUMSequence(
-        data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch,
-        register_colour=cfg.register_colour, pin_memory=torch.device(device).type == "cuda",
-    )
+
+    def open_tum(offset: float, prefetch: int) -> TUMSequence:
+        return TUMSequence(
+            data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=prefetch,
+            register_colour=cfg.register_colour, pin_memory=torch.device(device).type == "cuda", depth_time_offset=offset,
+        )
+
+    if cfg.depth_time_offset != AUTO:
+        return open_tum(cfg.depth_time_offset, cfg.prefetch)
+    probe = open_tum(0.0, 0)
+    if bool((probe.depth_timestamps == probe.timestamps).all()):
+        logger.info("%s: depth and colour stamped alike; data.depth_time_offset auto: 0", probe.name)
+        return open_tum(0.0, cfg.prefetch)
+    from .calibrate_time import estimate_depth_time_offset
+
+    est = estimate_depth_time_offset(probe)
+    offset = 0.0 if est.at_edge else est.offset
+    logger.info("%s: data.depth_time_offset auto: %+.1f ms (rotation RMS %.3f deg at 0, %.3f at the estimate; %d pairs)%s",
+                probe.name, 1000 * est.offset, est.cost_at_zero, est.cost_at_offset, est.pairs,
+                ", at the search range's edge: not used" if est.at_edge else "")
+    return open_tum(offset, cfg.prefetch)
 
 
 def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:

@@ -232,6 +232,26 @@ def _check_seconds(value, name: str, allow_zero: bool) -> float:
     return v
 
 
+#: Largest depth-stream latency ``depth_time_offset`` takes, seconds (a few frames of a 30 Hz camera
+#: and more; a larger value is a mistake of units, not a latency).
+MAX_DEPTH_TIME_OFFSET = 0.5
+
+
+def check_depth_time_offset(value, name: str) -> float:
+    """``value`` as a depth-stream latency in seconds, finite and within ``MAX_DEPTH_TIME_OFFSET``.
+
+    Raises:
+        ConfigError: naming ``name`` for anything else.
+    """
+    try:
+        v = float(value) if not isinstance(value, bool) else math.nan
+    except (TypeError, ValueError):
+        v = math.nan
+    if not (math.isfinite(v) and abs(v) <= MAX_DEPTH_TIME_OFFSET):
+        raise ConfigError(f"{name}: expected seconds within +-{MAX_DEPTH_TIME_OFFSET}, got {value!r}")
+    return v
+
+
 def _image_complete(buf: np.ndarray) -> bool:
     """Return False for a PNG or JPEG whose end marker is missing (a truncated file)."""
     head = buf[:8].tobytes()
@@ -299,6 +319,12 @@ class TUMSequence:
             False decodes every image with OpenCV.
         gt_max_gap: largest spacing of the two ground-truth poses bracketing a frame across
             which its pose is interpolated, seconds.
+        depth_time_offset: each depth image was taken at its stamp plus this, seconds (the depth
+            stream's latency against the colour stream's: ``Frame.depth_timestamp``, the instant
+            the systems give the depth's geometry, is ``depth.txt``'s stamp plus it). Colour and
+            depth are still associated by their stamps as written. ``torchslam calibrate-time
+            --stream depth`` estimates it from the images
+            (:func:`~torchslam.app.calibrate_time.estimate_depth_time_offset`).
 
     Attributes:
         name: the folder name.
@@ -310,7 +336,9 @@ class TUMSequence:
             registered with, or None (registered already, or ``register_colour=False``).
         colour_source: where ``colour_camera`` came from, or None.
         timestamps: (N,) float64 colour timestamps of the frames, seconds.
-        depth_timestamps: (N,) float64 timestamps of the paired depth images, seconds.
+        depth_timestamps: (N,) float64 instants of the paired depth images, seconds: their stamps
+            plus ``depth_time_offset``.
+        depth_time_offset: as given.
         rgb_paths, depth_paths: the N image files.
         association: pairing statistics over the whole folder.
         groundtruth: Trajectory of the ground-truth pose at every frame timestamp the ground truth
@@ -330,7 +358,7 @@ class TUMSequence:
             non-increasing list line (``imu.txt`` included), a listed image that does not exist,
             bad ground truth or calibration, or no associated frames.
         ConfigError: naming the argument for a bad ``max_gap``, ``stride``, ``start``, ``end``,
-            ``prefetch``, ``invalid_depth`` or ``gt_max_gap``.
+            ``prefetch``, ``invalid_depth``, ``gt_max_gap`` or ``depth_time_offset``.
     """
 
     def __init__(
@@ -348,8 +376,10 @@ class TUMSequence:
         register_colour: bool = True,
         pin_memory: bool = False,
         fast_png: bool = True,
+        depth_time_offset: float = 0.0,
     ) -> None:
         root = Path(root)
+        self.depth_time_offset = check_depth_time_offset(depth_time_offset, "depth_time_offset")
         max_gap = _check_seconds(max_gap, "max_gap", allow_zero=True)
         gt_max_gap = _check_seconds(gt_max_gap, "gt_max_gap", allow_zero=False)
         stride = _check_int(stride, "stride", 1)
@@ -442,7 +472,7 @@ class TUMSequence:
         sel = np.arange(start, n_pairs if end is None else end, stride)
         idx_r, idx_d = idx_r[sel], idx_d[sel]
         self.timestamps = torch.from_numpy(rgb_t[idx_r].copy())
-        self.depth_timestamps = torch.from_numpy(depth_t[idx_d].copy())
+        self.depth_timestamps = torch.from_numpy(depth_t[idx_d] + self.depth_time_offset)
         self.rgb_paths = [rgb_paths[i] for i in idx_r]
         self.depth_paths = [depth_paths[i] for i in idx_d]
         self._rgb_where = [f"{rgb_list.name}:{rgb_lines[i]}" for i in idx_r]

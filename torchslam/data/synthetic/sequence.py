@@ -85,6 +85,13 @@ class SyntheticConfig:
             ``[t - exposure / 2, t + exposure / 2]`` along the trajectory (motion blur); its
             depth and ground-truth pose stay those of the frame time ``t``.
         exposure_samples: renders averaged per frame when ``exposure > 0`` (at least 2).
+        depth_stamp_jitter: the depth stream's stamps as an unsynchronised sensor's: depth image
+            ``k`` is stamped ``k / fps + u_k`` with ``u_k`` uniform in ``[-jitter, jitter]``
+            seconds (seeded; TUM fr1 pairs colour and depth up to 17 ms apart); 0 stamps both
+            images alike. Less than half a frame period.
+        depth_time_offset: the depth image is taken at its stamp plus this, seconds (a planted
+            latency of the depth stream, as ``data.depth_time_offset`` models it); its pixels
+            are rendered from the pose at that instant.
     """
 
     frames: int = 300
@@ -111,6 +118,8 @@ class SyntheticConfig:
     batch_size: int = 8
     exposure: float = 0.0
     exposure_samples: int = 8
+    depth_stamp_jitter: float = 0.0
+    depth_time_offset: float = 0.0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "frames": AT_LEAST_1, "width": AT_LEAST_1, "height": AT_LEAST_1, "fps": POSITIVE, "seed": Limit(),
@@ -118,7 +127,8 @@ class SyntheticConfig:
         "depth_holes": Limit(ge=0, lt=1), "depth_scale": Limit(ge=DEPTH_SCALE_RANGE[0], le=DEPTH_SCALE_RANGE[1]),
         "max_depth": POSITIVE, "imu_rate": POSITIVE, "gravity": POSITIVE, "attitude_time_constant": Limit(gt=0, allow_inf=True),
         "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1, "exposure": NON_NEGATIVE,
-        "exposure_samples": Limit(ge=2),
+        "exposure_samples": Limit(ge=2), "depth_stamp_jitter": Limit(ge=0, le=0.05),
+        "depth_time_offset": Limit(ge=-1, le=1),
     }
     # Config keys of earlier releases, read as the nested fields they became.
     ALIASES: ClassVar[dict[str, str]] = {f.name: f"imu_noise.{f.name}" for f in fields(ImuNoise)}
@@ -133,6 +143,8 @@ class SyntheticConfig:
             fail("imu_noise", "an ImuNoise")
         if not isinstance(self.depth_noise, bool):
             fail("depth_noise", "true or false")
+        if self.depth_stamp_jitter >= 0.5 / self.fps:
+            fail("depth_stamp_jitter", f"less than half a frame period ({0.5 / self.fps:g} s at {self.fps:g} Hz), so that the depth stamps increase")
         if self.max_depth * self.depth_scale > 65535:
             fail("max_depth", f"at most {65535 / self.depth_scale:.3f} m so depth fits 16-bit PNGs at depth_scale")
         # The same plausibility test as a calibration.txt (calibration.intrinsics_problem).
@@ -210,6 +222,11 @@ class SyntheticSequence(Sequence):
         pose = self._pose = synthetic_trajectory(cfg)
         R, p = pose(self.timestamps)
         self.groundtruth = Trajectory(self.timestamps, se3_from_Rt(R, p))
+        jitter = torch.rand(cfg.frames, generator=_generator(_sub_seed(cfg.seed, 6), "cpu"), dtype=torch.float64)
+        # The depth stream's stamps (the colour ones unless ``depth_stamp_jitter``) and the
+        # instants its images are taken at (``depth_time_offset`` after them).
+        self.depth_timestamps = self.timestamps + (2.0 * jitter - 1.0) * cfg.depth_stamp_jitter
+        self._depth_instants = self.depth_timestamps + cfg.depth_time_offset
         self.gravity_w = torch.tensor([0.0, 0.0, -cfg.gravity], dtype=torch.float64)
         t_end = float(self.timestamps[-1])
         # IMU samples k / imu_rate from 0 up to the first sample at or after the last frame.
@@ -243,6 +260,9 @@ class SyntheticSequence(Sequence):
         out = self.renderer.render(self.groundtruth.T_wc[idx])
         depth = out.depth
         cfg = self.cfg
+        if idx.numel() and bool((self._depth_instants[idx] != self.timestamps[idx]).any()):
+            R, p = self._pose(self._depth_instants[idx])
+            depth = self.renderer.render(se3_from_Rt(R, p)).depth
         rgb = out.rgb if cfg.exposure <= 0 or not idx.numel() else self._exposed(idx)
         if cfg.depth_noise:
             # One generator per frame so noise does not depend on how frames were batched.
@@ -276,7 +296,9 @@ class SyntheticSequence(Sequence):
         return rgb.div_(n)
 
     def _frame(self, i: int, rgb: Tensor, depth: Tensor) -> Frame:
-        return Frame(index=i, timestamp=float(self.timestamps[i]), rgb=rgb, depth=depth, T_wc=self.groundtruth.T_wc[i])
+        t, t_d = float(self.timestamps[i]), float(self.depth_timestamps[i])
+        return Frame(index=i, timestamp=t, rgb=rgb, depth=depth, T_wc=self.groundtruth.T_wc[i],
+                     depth_timestamp=None if t_d == t else t_d)
 
     def __getitem__(self, index: int) -> Frame:
         n = len(self)
@@ -400,6 +422,7 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike, overwri
         f"{cam.fx:.6f} {cam.fy:.6f} {cam.cx:.6f} {cam.cy:.6f} {cfg.depth_scale:g} {cam.width} {cam.height}\n"
     )
     stamps = [f"{float(t):.6f}" for t in seq.timestamps]
+    depth_stamps = [f"{float(t):.6f}" for t in seq.depth_timestamps]
     bs = cfg.batch_size
     for start in range(0, len(seq), bs):
         stop = min(start + bs, len(seq))
@@ -410,12 +433,13 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike, overwri
             name = stamps[start + j] + ".png"
             if not cv2.imwrite(str(out / "rgb" / name), np.ascontiguousarray(rgb8[j][:, :, ::-1])):
                 raise OSError(f"{out / 'rgb' / name}: could not write PNG")
+            name = depth_stamps[start + j] + ".png"
             if not cv2.imwrite(str(out / "depth" / name), raw[j]):
                 raise OSError(f"{out / 'depth' / name}: could not write PNG")
     source = f"torchslam synthetic sequence {seq.name} ({cfg.frames} frames, {cfg.width}x{cfg.height})"
-    for kind, title in (("rgb", "color images"), ("depth", "depth maps")):
+    for kind, title, kind_stamps in (("rgb", "color images", stamps), ("depth", "depth maps", depth_stamps)):
         lines = [f"# {title}", f"# file: '{source}'", "# timestamp filename"]
-        lines += [f"{s} {kind}/{s}.png" for s in stamps]
+        lines += [f"{s} {kind}/{s}.png" for s in kind_stamps]
         (out / f"{kind}.txt").write_text("\n".join(lines) + "\n")
     write_tum_trajectory(out / "groundtruth.txt", seq.groundtruth, header=f"ground truth trajectory\nfile: '{source}'")
     imu = seq.imu
