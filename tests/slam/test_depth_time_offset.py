@@ -127,3 +127,12 @@ def test_synthetic_jitter_must_keep_the_depth_stamps_increasing():
         SyntheticConfig(fps=30.0, depth_stamp_jitter=0.017)
     with pytest.raises(ConfigError, match="depth_time_offset"):
         SyntheticConfig(depth_time_offset=2.0)
+
+
+def test_auto_falls_back_to_the_stamps_where_it_cannot_estimate(tmp_path, caplog):
+    # Three frames hold no pair 3 frames apart: nothing to estimate from, and the run goes on.
+    short = write_tum_folder(generate_sequence(SyntheticConfig(frames=3, depth_stamp_jitter=0.01, **_SMALL)), tmp_path / "short")
+    with caplog.at_level("WARNING", logger="torchslam.app.run"):
+        seq = load_sequence(str(short), DataConfig(prefetch=0, depth_time_offset="auto"))
+    assert seq.depth_time_offset == 0.0 and len(seq) == 3
+    assert "not estimated" in caplog.text and "using 0" in caplog.text

@@ -15,8 +15,8 @@ import torch
 from ..config import config_file, config_from_dict, config_to_dict, deep_merge, nest_dotted, parse_overrides, read_yaml_mapping
 from ..data.frame import Frame, Sequence
 from ..data.synthetic import SyntheticConfig, generate_sequence
-from ..data.tum import TUMSequence, check_depth_time_offset
-from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, check_limits
+from ..data.tum import MAX_DEPTH_TIME_OFFSET, TUMSequence, check_depth_time_offset
+from ..errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, TorchSlamError, check_limits
 from ..allocator import setup_allocator
 from ..threads import setup_threads
 from ..systems.base import check_max_frames, run_sequence
@@ -51,7 +51,7 @@ class DataConfig:
         depth_time_offset: each depth image was taken at its stamp plus this, seconds
             (``TUMSequence``; the depth stream's latency against the colour stream), or
             ``"auto"``: estimated from the images when the folder is opened
-            (:func:`~torchslam.app.calibrate_time.estimate_depth_time_offset`, a few seconds),
+            (:func:`~torchslam.app.calibrate_time.estimate_depth_time_offset`, about 10 s at 640x480),
             for folders whose depth stamps differ from their colour stamps (unsynchronised
             streams, as TUM's); a folder that stamps both alike is taken as synchronised (0).
             Not for ``--data synthetic``, whose latency is ``synthetic.depth_time_offset``.
@@ -76,7 +76,9 @@ class DataConfig:
             try:
                 offset = check_depth_time_offset(self.depth_time_offset, "data.depth_time_offset")
             except ConfigError:
-                raise ConfigError(f"data.depth_time_offset: expected seconds within +-0.5 or '{AUTO}', got {self.depth_time_offset!r}") from None
+                raise ConfigError(
+                    f"data.depth_time_offset: expected seconds within +-{MAX_DEPTH_TIME_OFFSET} or '{AUTO}', got {self.depth_time_offset!r}"
+                ) from None
             object.__setattr__(self, "depth_time_offset", offset)
 
 
@@ -161,7 +163,7 @@ def load_sequence(data: str, cfg: DataConfig, device: str = "cpu") -> Sequence:
     ``pin_memory``): each is copied to the GPU once, without blocking the host.
     """
     if data == SYNTHETIC:
-        if cfg.depth_time_offset == AUTO or cfg.depth_time_offset != 0.0:
+        if cfg.depth_time_offset != 0.0:  # a number or auto
             raise ConfigError("data.depth_time_offset: not for --data synthetic (its depth latency is data.synthetic.depth_time_offset)")
         return generate_sequence(cfg.synthetic)
 
@@ -179,12 +181,19 @@ def load_sequence(data: str, cfg: DataConfig, device: str = "cpu") -> Sequence:
         return open_tum(0.0, cfg.prefetch)
     from .calibrate_time import estimate_depth_time_offset
 
-    est = estimate_depth_time_offset(probe)
-    offset = 0.0 if est.at_edge else est.offset
-    logger.info("%s: data.depth_time_offset auto: %+.1f ms (rotation RMS %.3f deg at 0, %.3f at the estimate; %d pairs)%s",
-                probe.name, 1000 * est.offset, est.cost_at_zero, est.cost_at_offset, est.pairs,
-                ", at the search range's edge: not used" if est.at_edge else "")
-    return open_tum(offset, cfg.prefetch)
+    # A best-effort calibration: where it cannot decide, the stamps are taken as they are (0).
+    try:
+        est = estimate_depth_time_offset(probe)
+    except TorchSlamError as exc:
+        logger.warning("%s: data.depth_time_offset auto: not estimated (%s); using 0", probe.name, exc)
+        return open_tum(0.0, cfg.prefetch)
+    if est.at_edge:
+        logger.warning("%s: data.depth_time_offset auto: the best latency lies at the search range's edge (%+.1f ms); using 0",
+                       probe.name, 1000 * est.offset)
+        return open_tum(0.0, cfg.prefetch)
+    logger.info("%s: data.depth_time_offset auto: %+.1f ms (rotation RMS %.3f deg at 0, %.3f at the estimate; %d pairs)",
+                probe.name, 1000 * est.offset, est.cost_at_zero, est.cost_at_offset, est.pairs)
+    return open_tum(est.offset, cfg.prefetch)
 
 
 def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:
