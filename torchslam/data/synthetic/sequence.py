@@ -128,7 +128,7 @@ class SyntheticConfig:
         "max_depth": POSITIVE, "imu_rate": POSITIVE, "gravity": POSITIVE, "attitude_time_constant": Limit(gt=0, allow_inf=True),
         "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1, "exposure": NON_NEGATIVE,
         "exposure_samples": Limit(ge=2), "depth_stamp_jitter": Limit(ge=0, le=0.05),
-        "depth_time_offset": Limit(ge=-1, le=1),
+        "depth_time_offset": Limit(ge=-0.5, le=0.5),
     }
     # Config keys of earlier releases, read as the nested fields they became.
     ALIASES: ClassVar[dict[str, str]] = {f.name: f"imu_noise.{f.name}" for f in fields(ImuNoise)}
