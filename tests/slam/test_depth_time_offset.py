@@ -136,3 +136,12 @@ def test_auto_falls_back_to_the_stamps_where_it_cannot_estimate(tmp_path, caplog
         seq = load_sequence(str(short), DataConfig(prefetch=0, depth_time_offset="auto"))
     assert seq.depth_time_offset == 0.0 and len(seq) == 3
     assert "not estimated" in caplog.text and "using 0" in caplog.text
+
+
+def test_info_shows_how_the_depth_stream_is_stamped_against_the_colour_one(tmp_path):
+    from torchslam.data.tum import sequence_info
+
+    seq = generate_sequence(SyntheticConfig(frames=6, depth_stamp_jitter=0.012, **_SMALL))
+    info = sequence_info(write_tum_folder(seq, tmp_path / "seq"))
+    expected = float((seq.depth_timestamps - seq.timestamps).mean())
+    assert info["association_mean_depth_minus_colour_s"] == pytest.approx(expected, abs=2e-6)
