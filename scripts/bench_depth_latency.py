@@ -2,7 +2,7 @@
 
     python scripts/bench_depth_latency.py [--seeds 100,101,102,103,104] [--planted -0.015]
                                           [--jitter 0.015] [--frames 300] [--size 640x480] [--no-tum]
-                                          [--out PATH]
+                                          [--systems nislam,gcslam-sparse,gcslam-dense] [--out PATH]
 
 Each case is run as ``torchslam run`` runs it (a fresh process, one torch thread, no
 TensorBoard), once with ``data.depth_time_offset=0`` (the default) and once with ``auto`` (the
@@ -59,9 +59,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--size", default="640x480", help="the synthetic images' WIDTHxHEIGHT")
     ap.add_argument("--no-tum", action="store_true", help="leave TUM fr1/xyz out")
+    ap.add_argument("--systems", default=",".join(SETTINGS), help=f"any of {', '.join(SETTINGS)}, comma-separated")
     ap.add_argument("--out", type=Path, default=RESULTS / "depth_latency" / "bench_depth_latency.json")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",") if s]
+    systems = [s for s in args.systems.split(",") if s]
+    unknown = [s for s in systems if s not in SETTINGS]
+    if unknown or not systems:
+        ap.error(f"--systems {args.systems}: expected some of {', '.join(SETTINGS)}")
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
@@ -82,7 +87,7 @@ def main() -> None:
             else:
                 print(f"{fr1}: absent, left out")
         for name, split, folder in cases:
-            for system in SETTINGS:
+            for system in systems:
                 runs = {off: _run(folder, system, off, Path(tmp) / f"{folder.name}-{system}-{off}") for off in ("0", "auto")}
                 rows.append({"sequence": name, "split": split, "system": system, "default": runs["0"], "auto": runs["auto"]})
                 print(f"{split:9s} {name:20s} {system:14s} ATE {runs['0']['ate_cm']:.3f} -> {runs['auto']['ate_cm']:.3f} cm"
