@@ -366,14 +366,14 @@ def _cmd_calibrate_time(args) -> int:
 def _calibrate_depth_time(args, threads, allocator) -> int:
     """``calibrate-time --stream depth``: the depth stream's latency (``data.depth_time_offset``)."""
     from .app.calibrate_time import estimate_depth_time_offset
-    from .app.run import SYNTHETIC, DataConfig, load_sequence
+    from .app.run import DataConfig, load_sequence
     from .data.synthetic import SyntheticConfig
 
     if args.attitude != "auto":
         raise _ArgError(f"--attitude {args.attitude}: the depth latency is measured without an attitude stream; leave --attitude out")
-    # The built-in synthetic sequence stamps colour and depth alike: nothing to find there but 0.
-    data_cfg = DataConfig(prefetch=0, synthetic=SyntheticConfig(frames=120) if args.data == SYNTHETIC else SyntheticConfig())
-    seq = load_sequence(args.data, data_cfg)
+    # The built-in synthetic sequence stamps colour and depth alike: nothing to find there but 0,
+    # so a short one serves.
+    seq = load_sequence(args.data, DataConfig(prefetch=0, synthetic=SyntheticConfig(frames=120)))
     est = estimate_depth_time_offset(
         seq, frames=180 if args.pairs is None else args.pairs, frame_gap=args.frame_gap, max_offset=args.max_offset,
         step=min(0.0025, args.max_offset),

@@ -39,7 +39,7 @@ compares the rotations of the two streams' own images.
    refined by the same parabola.
 
 A planted latency of a synthetic sequence (``SyntheticConfig.depth_time_offset``) is found to
-about 2 ms (``tests/app/test_calibrate_time.py``).
+within 3 ms (``tests/slam/test_depth_time_offset.py``).
 """
 
 from __future__ import annotations

@@ -167,33 +167,35 @@ def load_sequence(data: str, cfg: DataConfig, device: str = "cpu") -> Sequence:
             raise ConfigError("data.depth_time_offset: not for --data synthetic (its depth latency is data.synthetic.depth_time_offset)")
         return generate_sequence(cfg.synthetic)
 
-    def open_tum(offset: float, prefetch: int) -> TUMSequence:
+    def open_tum(offset: float) -> TUMSequence:
         return TUMSequence(
-            data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=prefetch,
+            data, max_gap=cfg.max_gap, stride=cfg.stride, start=cfg.start, end=cfg.end, prefetch=cfg.prefetch,
             register_colour=cfg.register_colour, pin_memory=torch.device(device).type == "cuda", depth_time_offset=offset,
         )
 
     if cfg.depth_time_offset != AUTO:
-        return open_tum(cfg.depth_time_offset, cfg.prefetch)
-    probe = open_tum(0.0, 0)
-    if bool((probe.depth_timestamps == probe.timestamps).all()):
-        logger.info("%s: depth and colour stamped alike; data.depth_time_offset auto: 0", probe.name)
-        return open_tum(0.0, cfg.prefetch)
+        return open_tum(cfg.depth_time_offset)
+    # Opened at the stamps (the estimator reads frames by index; ``prefetch`` only serves
+    # iteration), and kept wherever the latency stays 0.
+    seq = open_tum(0.0)
+    if bool((seq.depth_timestamps == seq.timestamps).all()):
+        logger.info("%s: depth and colour stamped alike; data.depth_time_offset auto: 0", seq.name)
+        return seq
     from .calibrate_time import estimate_depth_time_offset
 
     # A best-effort calibration: where it cannot decide, the stamps are taken as they are (0).
     try:
-        est = estimate_depth_time_offset(probe)
+        est = estimate_depth_time_offset(seq)
     except TorchSlamError as exc:
-        logger.warning("%s: data.depth_time_offset auto: not estimated (%s); using 0", probe.name, exc)
-        return open_tum(0.0, cfg.prefetch)
+        logger.warning("%s: data.depth_time_offset auto: not estimated (%s); using 0", seq.name, exc)
+        return seq
     if est.at_edge:
         logger.warning("%s: data.depth_time_offset auto: the best latency lies at the search range's edge (%+.1f ms); using 0",
-                       probe.name, 1000 * est.offset)
-        return open_tum(0.0, cfg.prefetch)
+                       seq.name, 1000 * est.offset)
+        return seq
     logger.info("%s: data.depth_time_offset auto: %+.1f ms (rotation RMS %.3f deg at 0, %.3f at the estimate; %d pairs)",
-                probe.name, 1000 * est.offset, est.cost_at_zero, est.cost_at_offset, est.pairs)
-    return open_tum(est.offset, cfg.prefetch)
+                seq.name, 1000 * est.offset, est.cost_at_zero, est.cost_at_offset, est.pairs)
+    return open_tum(est.offset)
 
 
 def default_out_dir(system: str, data: str, root: str | os.PathLike = "logs") -> Path:

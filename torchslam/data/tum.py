@@ -729,10 +729,11 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         ``duration_s``; ``rgb_list_count``, ``depth_list_count``, ``associated_count``,
         ``dropped_rgb``, ``dropped_depth``, ``association_max_gap_s``, ``association_mean_gap_s``,
         ``association_max_gap_allowed_s``, ``association_mean_depth_minus_colour_s``;
-        ``intrinsics`` (fx, fy, cx, cy in pixels), ``intrinsics_source``, ``depth_scale``, ``image_size`` (width, height); ``gt_poses``
-        (poses in groundtruth.txt, 0 without it), ``gt_frames_covered``, ``gt_coverage_fraction``,
-        ``gt_frames_interpolated_across_gap`` (covered frames whose bracketing poses are more
-        than 1.5 times the median ground-truth spacing apart), ``gt_largest_gap_s``,
+        ``intrinsics`` (fx, fy, cx, cy in pixels), ``intrinsics_source``, ``depth_scale``,
+        ``image_size`` (width, height); ``gt_poses`` (poses in groundtruth.txt, 0 without it),
+        ``gt_frames_covered``, ``gt_coverage_fraction``, ``gt_frames_interpolated_across_gap``
+        (covered frames whose bracketing poses are more than 1.5 times the median ground-truth
+        spacing apart), ``gt_largest_gap_s``,
         ``gt_max_gap_allowed_s``; ``colour_registered_with`` (the colour camera the colour images
         are registered with and its source, or None); ``accelerometer_samples`` (0 without accelerometer.txt);
         ``imu_samples`` (0 without imu.txt).
