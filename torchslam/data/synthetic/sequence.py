@@ -92,6 +92,11 @@ class SyntheticConfig:
         depth_time_offset: the depth image is taken at its stamp plus this, seconds (a planted
             latency of the depth stream, as ``data.depth_time_offset`` models it); its pixels
             are rendered from the pose at that instant.
+        readout_time: a planted rolling shutter, seconds from the first image row to the last
+            (0: a global shutter). Both images are read top row first, their stamps at the middle
+            row: rows are rendered in bands of 16, each band from the pose at its middle row's
+            instant (within a 32nd of ``readout_time`` of each row's own, for 480 rows), as
+            GC-SLAM's ``readout_time`` models it. The ground truth stays at the stamps.
     """
 
     frames: int = 300
@@ -120,6 +125,7 @@ class SyntheticConfig:
     exposure_samples: int = 8
     depth_stamp_jitter: float = 0.0
     depth_time_offset: float = 0.0
+    readout_time: float = 0.0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "frames": AT_LEAST_1, "width": AT_LEAST_1, "height": AT_LEAST_1, "fps": POSITIVE, "seed": Limit(),
@@ -128,7 +134,7 @@ class SyntheticConfig:
         "max_depth": POSITIVE, "imu_rate": POSITIVE, "gravity": POSITIVE, "attitude_time_constant": Limit(gt=0, allow_inf=True),
         "texture_density": Limit(gt=0, le=1024), "batch_size": AT_LEAST_1, "exposure": NON_NEGATIVE,
         "exposure_samples": Limit(ge=2), "depth_stamp_jitter": Limit(ge=0, le=0.05),
-        "depth_time_offset": Limit(ge=-0.5, le=0.5),
+        "depth_time_offset": Limit(ge=-0.5, le=0.5), "readout_time": Limit(ge=0, le=0.1),
     }
     # Config keys of earlier releases, read as the nested fields they became.
     ALIASES: ClassVar[dict[str, str]] = {f.name: f"imu_noise.{f.name}" for f in fields(ImuNoise)}
@@ -239,6 +245,15 @@ class SyntheticSequence(Sequence):
         )
         self.scene = build_scene(cfg.seed, cfg.texture_density, self.device)
         self.renderer = SceneRenderer(self.scene, self.camera, self.device)
+        # readout_time: (first row, end row, seconds after the stamp, renderer of those rows) per band.
+        self._bands: list[tuple[int, int, float, SceneRenderer]] = []
+        if cfg.readout_time > 0:
+            H = self.camera.height
+            for r0 in range(0, H, _BAND_ROWS):
+                r1 = min(H, r0 + _BAND_ROWS)
+                cam = PinholeCamera(self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy - r0, self.camera.width, r1 - r0)
+                delta = cfg.readout_time * ((r0 + r1 - 1) / 2 - (H - 1) / 2) / H
+                self._bands.append((r0, r1, delta, SceneRenderer(self.scene, cam, self.device)))
         self._cached: tuple[int, Tensor, Tensor] | None = None
 
     def __len__(self) -> int:
@@ -257,13 +272,16 @@ class SyntheticSequence(Sequence):
         idx = torch.as_tensor(list(indices) if not isinstance(indices, Tensor) else indices, dtype=torch.int64)
         if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= len(self)):
             raise IndexError(f"indices: frame index out of range 0..{len(self) - 1}")
-        out = self.renderer.render(self.groundtruth.T_wc[idx])
-        depth = out.depth
         cfg = self.cfg
-        if idx.numel() and bool((self._depth_instants[idx] != self.timestamps[idx]).any()):
-            R, p = self._pose(self._depth_instants[idx])
-            depth = self.renderer.render(se3_from_Rt(R, p)).depth
-        rgb = out.rgb if cfg.exposure <= 0 or not idx.numel() else self._exposed(idx)
+        if self._bands and idx.numel():
+            rgb, depth = self._rolling(idx)
+        else:
+            out = self.renderer.render(self.groundtruth.T_wc[idx])
+            depth = out.depth
+            if idx.numel() and bool((self._depth_instants[idx] != self.timestamps[idx]).any()):
+                R, p = self._pose(self._depth_instants[idx])
+                depth = self.renderer.render(se3_from_Rt(R, p)).depth
+            rgb = out.rgb if cfg.exposure <= 0 or not idx.numel() else self._exposed(idx)
         if cfg.depth_noise:
             # One generator per frame so noise does not depend on how frames were batched.
             depth = torch.stack(
@@ -283,17 +301,37 @@ class SyntheticSequence(Sequence):
             depth = torch.where(depth <= cfg.max_depth, depth, torch.zeros_like(depth))
         return rgb, depth
 
-    def _exposed(self, idx: Tensor) -> Tensor:
-        """(B, 3, H, W) colour of frames ``idx`` averaged over their exposure (``cfg.exposure``)."""
+    def _exposed(self, idx: Tensor, delta: float = 0.0, renderer: SceneRenderer | None = None) -> Tensor:
+        """(B, 3, H, W) colour of frames ``idx`` averaged over their exposure (``cfg.exposure``),
+        ``delta`` seconds after the stamps, by ``renderer`` (the whole image's by default)."""
         cfg = self.cfg
+        renderer = renderer or self.renderer
         n = cfg.exposure_samples
         rgb = None
         for k in range(n):  # one render of the whole batch per instant of the exposure
-            t = self.timestamps[idx] + cfg.exposure * (k / (n - 1) - 0.5)
+            t = self.timestamps[idx] + delta + cfg.exposure * (k / (n - 1) - 0.5)
             R, p = self._pose(t)
-            sub = self.renderer.render(se3_from_Rt(R, p)).rgb
+            sub = renderer.render(se3_from_Rt(R, p)).rgb
             rgb = sub if rgb is None else rgb.add_(sub)
         return rgb.div_(n)
+
+    def _rolling(self, idx: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, 3, H, W) colour and (B, 1, H, W) noise-free depth of frames ``idx`` read by a rolling
+        shutter (``cfg.readout_time``): each band of rows rendered at its own instant."""
+        cam, B = self.camera, idx.numel()
+        rgb = torch.empty(B, 3, cam.height, cam.width, device=self.device)
+        depth = torch.empty(B, 1, cam.height, cam.width, device=self.device)
+        same = bool((self._depth_instants[idx] == self.timestamps[idx]).all())
+        for r0, r1, delta, renderer in self._bands:
+            R, p = self._pose(self.timestamps[idx] + delta)
+            out = renderer.render(se3_from_Rt(R, p))
+            rgb[:, :, r0:r1] = out.rgb if self.cfg.exposure <= 0 else self._exposed(idx, delta, renderer)
+            if same:
+                depth[:, :, r0:r1] = out.depth
+            else:
+                R, p = self._pose(self._depth_instants[idx] + delta)
+                depth[:, :, r0:r1] = renderer.render(se3_from_Rt(R, p)).depth
+        return rgb, depth
 
     def _frame(self, i: int, rgb: Tensor, depth: Tensor) -> Frame:
         t, t_d = float(self.timestamps[i]), float(self.depth_timestamps[i])
@@ -323,6 +361,10 @@ class SyntheticSequence(Sequence):
             rgb, depth = self.render(range(start, stop))
             for j in range(stop - start):
                 yield self._frame(start + j, rgb[j], depth[j])
+
+
+# Rows of a band rendered at one instant under ``readout_time`` (the renderer's tile height).
+_BAND_ROWS = 16
 
 
 def generate_sequence(cfg: SyntheticConfig | None = None, device: torch.device | str | None = None) -> SyntheticSequence:

@@ -10,6 +10,7 @@ from ...errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ch
 from ...features import ORBConfig
 from ...loop import MILDConfig
 from ...registration.dense import DenseConfig
+from ...registration.rolling import MAX_READOUT_S
 from ...registration.sparse import SparseConfig
 
 __all__ = ["Frontend", "GCSlamConfig"]
@@ -150,6 +151,13 @@ class GCSlamConfig:
             real and synthetic sequence measured (TUM fr1/xyz 4.85 -> 3.63 mm); docs/results/gcslam.md, "Sparse
             poses refined against the keyframe's depth". Chosen before measuring, not tuned.
         depth_refine_iterations: Gauss-Newton steps of that refinement.
+        readout_time: the sensor's rolling shutter, seconds from its first image row to its last
+            (0: a global shutter, as the paper assumes; a Kinect v1 reads its rows over about
+            30 ms). A frame's stamp is taken as its middle row's instant. With the dense
+            front-end only: each frame's pixels are moved to the stamp with the tracker's
+            constant-velocity motion before they are registered, and a keyframe's images are
+            resampled so, for tracking, its pairs and its loops
+            (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md, "Rolling shutter").
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -191,6 +199,7 @@ class GCSlamConfig:
     loop_pair_weight: str = "auto"
     depth_refine_points: int = 3000
     depth_refine_iterations: int = 3
+    readout_time: float = 0.0
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "orb_min_fast_threshold": Limit(ge=0, le=255),
@@ -201,6 +210,7 @@ class GCSlamConfig:
         "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
         "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
         "motion_prior_max_gap": POSITIVE, "depth_refine_points": NON_NEGATIVE, "depth_refine_iterations": NON_NEGATIVE,
+        "readout_time": Limit(ge=0, le=MAX_READOUT_S),
     }
 
     def __post_init__(self) -> None:
@@ -216,6 +226,11 @@ class GCSlamConfig:
         if self.loop_pair_weight not in ("auto", "correspondences", "orb"):
             raise ConfigError(f"loop_pair_weight: expected 'auto', 'correspondences' or 'orb', got {self.loop_pair_weight!r}")
         check_limits(self)
+        if self.readout_time > 0 and self.frontend is not Frontend.DENSE:
+            raise ConfigError(
+                f"readout_time: the rolling-shutter model ({self.readout_time} s) is the dense front-end's; "
+                "set frontend=dense, or readout_time=0 for the sparse front-end"
+            )
 
     @property
     def dense_pairs(self) -> bool:

@@ -57,12 +57,16 @@ class PreparedFrame:
         depth: (1, H, W) depth, metres (0 = invalid).
         features: ORB features, or None until something needs them.
         dense: the dense pyramid (dense front-end only), else None.
+        twist: (6,) float64 the camera's motion at the frame, per second (translation first, in
+            its own coordinates), once the tracker has an estimate: what ``readout_time``'s
+            rolling-shutter model moves the frame's pixels with; None before.
     """
 
     rgb: Tensor
     depth: Tensor
     features: FrameFeatures | None = None
     dense: DenseFrame | None = None
+    twist: Tensor | None = None
 
 
 class RegistrationTarget(Protocol):

@@ -1,0 +1,139 @@
+"""Rolling shutters: planted in synthetic sequences, undone by GC-SLAM's dense front-end (``readout_time``)."""
+
+import math
+
+import pytest
+import torch
+
+from torchslam.config import config_from_dict
+from torchslam.data.synthetic import SyntheticConfig, generate_sequence
+from torchslam.errors import ConfigError
+from torchslam.geometry import se3_exp, se3_from_Rt, se3_inverse, se3_log
+from torchslam.registration.dense import DenseConfig, dense_images, prepare_dense_frame, register_dense_frames
+from torchslam.registration.rolling import (
+    check_readout, correct_points, dense_frame_at_stamp, dense_images_at_stamp, row_offsets,
+)
+from torchslam.systems.base import run_sequence
+from torchslam.systems.gcslam import GCSlam, GCSlamConfig
+
+_SMALL = dict(width=320, height=240, depth_noise=False)
+
+
+def _twist(seq, k: int) -> torch.Tensor:
+    """(6,) the true body twist per second at frame ``k`` (central difference of the trajectory)."""
+    h = 1e-3
+    t = seq.timestamps[k : k + 1]
+    R0, p0 = seq._pose(t - h)
+    R1, p1 = seq._pose(t + h)
+    return se3_log(se3_inverse(se3_from_Rt(R0, p0)) @ se3_from_Rt(R1, p1))[0] / (2 * h)
+
+
+def test_row_offsets_put_the_stamp_at_the_middle_row_and_span_the_readout():
+    d = row_offsets(480, 480, 0.03)
+    assert float(d[0]) == pytest.approx(-0.03 * 239.5 / 480) and float(d[-1]) == pytest.approx(0.03 * 239.5 / 480)
+    assert float(d[1] - d[0]) == pytest.approx(0.03 / 480)
+    # A level reduced by 2: its row r covers sensor rows 2r and 2r + 1.
+    half = row_offsets(240, 480, 0.03)
+    assert torch.allclose(half, (d[0::2] + d[1::2]) / 2, atol=1e-15)
+
+
+def test_planted_rolling_shutter_renders_each_band_at_its_instant_and_nothing_else_moves():
+    cfg = dict(frames=4, seed=2, **_SMALL)
+    base, rolled = generate_sequence(SyntheticConfig(**cfg)), generate_sequence(SyntheticConfig(readout_time=0.03, **cfg))
+    assert torch.equal(base.groundtruth.T_wc, rolled.groundtruth.T_wc)
+    rgb, depth = rolled.render(range(4))
+    rgb0, _ = base.render(range(4))
+    assert not torch.allclose(rgb, rgb0, atol=1e-3)
+    for r0, r1, delta, _ in (rolled._bands[0], rolled._bands[7], rolled._bands[-1]):
+        R, p = rolled._pose(rolled.timestamps[:4] + delta)
+        full = rolled.renderer.render(se3_from_Rt(R, p))
+        assert torch.equal(full.rgb[:, :, r0:r1], rgb[:, :, r0:r1])
+        assert torch.allclose(full.depth[:, :, r0:r1], depth[:, :, r0:r1], atol=2e-4)  # the depth's quantisation
+    assert rolled._bands[0][2] == pytest.approx(0.03 * (7.5 - 119.5) / 240)
+
+
+def test_moved_points_match_the_exact_rigid_motion_and_leave_invalid_ones():
+    g = torch.Generator().manual_seed(0)
+    B, h, w, H = 2, 6, 5, 480
+    points = torch.rand(B, h * w, 3, generator=g, dtype=torch.float64) * torch.tensor([2.0, 2.0, 3.0]) + torch.tensor([-1.0, -1.0, 0.5])
+    valid = torch.rand(B, h * w, generator=g) > 0.2
+    twist = torch.tensor([[0.4, -0.2, 0.3, 0.6, -0.5, 0.3], [-0.3, 0.1, 0.0, -0.2, 0.7, 0.1]], dtype=torch.float64)
+    out = correct_points(points, valid, twist, w, H, 0.03)
+    delta = row_offsets(h, H, 0.03).repeat_interleave(w)  # (N,)
+    # Exact: X = exp(delta xi) X_row, per point.
+    T = se3_exp(delta[None, :, None] * twist[:, None, :])  # (B, N, 4, 4)
+    exact = (T[..., :3, :3] @ points[..., None])[..., 0] + T[..., :3, 3]
+    err = (out - exact).norm(dim=-1)[valid]
+    move = (exact - points).norm(dim=-1)[valid]
+    # What is left is second order in delta |xi| (at most 0.015 * 0.9 here): about 1 % of the move.
+    assert float((err / move).max()) < 0.02 and float(move.max()) > 0.01
+    assert torch.equal(out[~valid], points[~valid])
+    assert correct_points(points, valid, twist, w, H, 0.0) is points
+
+
+def test_resampled_keyframe_images_come_close_to_a_global_shutter_render():
+    cfg = dict(frames=12, seed=1, **_SMALL)
+    rolled, glob = generate_sequence(SyntheticConfig(readout_time=0.03, **cfg)), generate_sequence(SyntheticConfig(**cfg))
+    dc = DenseConfig()
+    k = 9
+    a, b = rolled[k], glob[k]
+    rs = dense_images(a.rgb[None], a.depth[None], rolled.camera, dc)
+    gs = dense_images(b.rgb[None], b.depth[None], rolled.camera, dc)
+    at = dense_images_at_stamp(rs, _twist(rolled, k).float(), 0.03)
+    m = (gs.depth > 0) & (at.depth > 0) & (rs.depth > 0)
+    dz_rs, dz_at = ((rs.depth - gs.depth)[m]).abs().median(), ((at.depth - gs.depth)[m]).abs().median()
+    dg_rs, dg_at = ((rs.grey - gs.grey)[m]).abs().mean(), ((at.grey - gs.grey)[m]).abs().mean()
+    assert float(dz_at) < 0.2 * float(dz_rs)
+    assert float(dg_at) < 0.35 * float(dg_rs)
+    assert dense_images_at_stamp(rs, _twist(rolled, k).float(), 0.0) is rs
+
+
+def test_registration_of_rolling_shutter_frames_moved_to_their_stamps_is_closer_to_the_truth():
+    cfg = dict(frames=30, seed=1, **_SMALL)
+    seq = generate_sequence(SyntheticConfig(readout_time=0.03, **cfg))
+    dc = DenseConfig()
+    err = {"as read": 0.0, "at stamps": 0.0}
+    for i in (5, 15, 25):
+        j = i + 3
+        T_ij = se3_inverse(seq.groundtruth.T_wc[i]) @ seq.groundtruth.T_wc[j]
+        a, b = seq[i], seq[j]
+        A = prepare_dense_frame(a.rgb[None], a.depth[None], seq.camera, dc)
+        Bf = prepare_dense_frame(b.rgb[None], b.depth[None], seq.camera, dc)
+        for name in err:
+            Ai, Bj = A, Bf
+            if name == "at stamps":
+                Ai = dense_images_at_stamp(A.images(), _twist(seq, i).float(), 0.03).pyramid()
+                Bj = dense_frame_at_stamp(Bf, _twist(seq, j).float(), 0.03)
+            res = register_dense_frames(Ai, Bj, torch.eye(4, dtype=torch.float64)[None], dc)
+            err[name] += float((se3_inverse(T_ij) @ res.T_ij[0].to(torch.float64))[:3, 3].norm())
+    assert err["at stamps"] < 0.6 * err["as read"], err
+
+
+@pytest.mark.parametrize("value", [-0.01, 0.2, math.nan])
+def test_a_bad_readout_is_refused_by_name(value):
+    with pytest.raises(ConfigError, match="readout_time"):
+        config_from_dict(GCSlamConfig, {"frontend": "dense", "readout_time": value})
+    with pytest.raises(ConfigError, match="readout_time"):
+        SyntheticConfig(readout_time=value)
+    with pytest.raises(ConfigError, match="readout_time"):
+        check_readout(value)
+
+
+def test_the_sparse_front_end_refuses_a_readout_it_does_not_model():
+    with pytest.raises(ConfigError, match=r"readout_time: .*frontend=dense"):
+        config_from_dict(GCSlamConfig, {"frontend": "sparse", "readout_time": 0.03})
+    assert config_from_dict(GCSlamConfig, {"frontend": "sparse", "readout_time": 0}).readout_time == 0
+
+
+def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
+    seq = generate_sequence(SyntheticConfig(frames=24, seed=1, readout_time=0.03, **_SMALL))
+    cfg = config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False, "readout_time": 0.03})
+    system = GCSlam(cfg)
+    out = run_sequence(system, seq).output
+    rs = out.metrics["rolling_shutter"]
+    assert rs["readout_time_s"] == 0.03
+    # The first keyframe has no motion yet: frames against it stay as read; every later keyframe is moved.
+    assert rs["keyframes"] == len(system.keyframes) - 1 >= 1
+    assert 0 < rs["frames"] < len(seq)
+    off = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False}))
+    assert run_sequence(off, seq).output.metrics["rolling_shutter"] == {"readout_time_s": 0.0, "frames": 0, "keyframes": 0}
