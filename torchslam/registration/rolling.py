@@ -95,7 +95,7 @@ def correct_points(points: Tensor, valid: Tensor, twist: Tensor, width: int, ful
         return points
     h = N // width
     delta = row_offsets(h, full_height, readout, points.dtype, points.device).repeat_interleave(width)  # (N,)
-    step = _motion(points, twist.to(points.dtype)) * delta[None, :, None]
+    step = _motion(points, twist.to(dtype=points.dtype, device=points.device)) * delta[None, :, None]
     return points + step * valid[..., None].to(points.dtype)
 
 
@@ -131,7 +131,7 @@ def global_shutter_images(grey: Tensor, depth: Tensor, inside: Tensor | None, fx
         return grey, depth, inside
     B, _, h, w = grey.shape
     dt, dev = grey.dtype, grey.device
-    tw = twist.to(dt)
+    tw = twist.to(dtype=dt, device=dev)
     delta_rows = row_offsets(h, full_height, readout, dt, dev)  # (h,)
     v, u = torch.meshgrid(torch.arange(h, dtype=dt, device=dev), torch.arange(w, dtype=dt, device=dev), indexing="ij")
     rx, ry = ((u - cx) / fx).reshape(1, -1), ((v - cy) / fy).reshape(1, -1)

@@ -450,8 +450,10 @@ class GCSlam:
             self._twists.append(self._velocity)
 
     def _twist(self) -> Tensor | None:
-        """(6,) float64 the camera's motion for ``readout_time``: the mean twist of the last tracked steps."""
-        if not self._twists:
+        """(6,) float64 the camera's motion for ``readout_time``: the mean twist of the last tracked
+        steps; None where the last frame was not tracked (the motion prior's twist is reset)."""
+        if self._velocity is None or not self._twists:
+            self._twists.clear()
             return None
         return torch.stack(list(self._twists)).mean(0)
 
