@@ -95,7 +95,7 @@ class SyntheticConfig:
         readout_time: a planted rolling shutter, seconds from the first image row to the last
             (0: a global shutter). Both images are read top row first, their stamps at the middle
             row: rows are rendered in bands of 16, each band from the pose at its middle row's
-            instant (within a 32nd of ``readout_time`` of each row's own, for 480 rows), as
+            instant (within ``readout_time`` / 64 of each row's own, for 480 rows), as
             GC-SLAM's ``readout_time`` models it. The ground truth stays at the stamps.
     """
 

@@ -412,7 +412,7 @@ class GCSlam:
 
     def _to_stamp(self, view: PreparedFrame, t: float) -> None:
         """Move the dense view's pixels to the frame's stamp (``readout_time``) with the predicted
-        motion: the last tracked step's twist, where the motion prior spans the gap to it."""
+        motion (:meth:`_twist`), where the motion prior spans the gap to the last tracked frame."""
         v, t0 = self._twist(), self._last_time
         if view.dense is None or v is None or t0 is None or not self._within_prior_gap(t - t0):
             return
