@@ -138,15 +138,3 @@ def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
     off = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False}))
     assert run_sequence(off, seq).output.metrics["rolling_shutter"] == {"readout_time_s": 0.0, "frames": 0, "keyframes": 0}
 
-
-def test_no_motion_is_used_once_the_last_frame_was_not_tracked():
-    system = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "readout_time": 0.03}))
-    system.start(generate_sequence(SyntheticConfig(frames=2, **_SMALL)))
-    system._last_T_kf = torch.eye(4, dtype=torch.float64)
-    system._last_time = 0.0
-    step = torch.eye(4, dtype=torch.float64)
-    step[0, 3] = 0.01
-    system._update_velocity(step, 1 / 30)
-    assert torch.allclose(system._twist(), torch.tensor([0.3, 0, 0, 0, 0, 0], dtype=torch.float64))
-    system._velocity = None  # what a tracking failure, a lost frame or a relocalisation do
-    assert system._twist() is None and not system._twists
