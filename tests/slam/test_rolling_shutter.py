@@ -117,6 +117,8 @@ def test_a_bad_readout_is_refused_by_name(value):
         SyntheticConfig(readout_time=value)
     with pytest.raises(ConfigError, match="readout_time"):
         check_readout(value)
+    with pytest.raises(ConfigError, match="readout: expected seconds"):
+        correct_points(torch.zeros(1, 4, 3), torch.ones(1, 4, dtype=torch.bool), torch.zeros(1, 6), 2, 480, value)
 
 
 def test_the_sparse_front_end_refuses_a_readout_it_does_not_model():

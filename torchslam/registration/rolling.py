@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import ConfigError, check_shape
+from ..errors import ConfigError, ShapeError, check_shape
 from .dense import DenseFrame, DenseImages, DenseLevel, _level_camera
 
 __all__ = [
@@ -88,9 +88,10 @@ def correct_points(points: Tensor, valid: Tensor, twist: Tensor, width: int, ful
     check_shape(points, "B N 3", "points", dims)
     check_shape(valid, "B N", "valid", dims)
     check_shape(twist, "B 6", "twist", dims)
+    readout = check_readout(readout, "readout")
     N = dims["N"]
     if N % width:
-        raise ConfigError(f"width: {width} does not divide the {N} points into rows")
+        raise ShapeError(f"width: {width} does not divide the {N} points into rows")
     if readout == 0.0:
         return points
     h = N // width
@@ -127,6 +128,7 @@ def global_shutter_images(grey: Tensor, depth: Tensor, inside: Tensor | None, fx
     check_shape(grey, "B 1 h w", "grey", dims)
     check_shape(depth, "B 1 h w", "depth", dims)
     check_shape(twist, "B 6", "twist", dims)
+    readout = check_readout(readout, "readout")
     if readout == 0.0:
         return grey, depth, inside
     B, _, h, w = grey.shape
