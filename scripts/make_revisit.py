@@ -10,7 +10,8 @@ new stamp. Colour and depth share each new stamp (the original pairs' offset is 
 the ground truth written there is the pose at the source frame's depth instant, where its
 geometry was taken (TUM fr1 takes colour about 15 ms after depth; at the camera's speed the
 colour instant's pose would put millimetres of timing error into every frame). There is no
-accelerometer file, so use ``attitude=groundtruth`` or ``simulated`` on it.
+accelerometer file, so use ``attitude=groundtruth`` or ``simulated`` on it. Its
+``calibration.txt`` is the source's camera with ``readout 0`` (``write_calibration``).
 
 The images are real; the motion reverses at each end within one frame, which the constant-
 velocity prediction misses once. Revisited places show the very same images, so the loops it
@@ -35,6 +36,7 @@ import torch
 
 from _bench import data_root
 from torchslam.data import Trajectory, TUMSequence
+from torchslam.data.calibration import CALIBRATION_FILE, READOUT_KEYWORD
 from torchslam.data.trajectory import write_tum_trajectory
 
 
@@ -44,6 +46,27 @@ def revisit_order(n: int) -> list[int]:
         raise ValueError(f"a sequence of {n} frame(s) cannot be played back and forth")
     back = list(range(n - 2, -1, -1))
     return list(range(n)) + back + list(range(1, n)) + back
+
+
+def write_calibration(src: Path, seq: TUMSequence, path: Path) -> None:
+    """The stand-in's ``calibration.txt``: the source's camera as it reads it, with ``readout 0``.
+
+    Played backward, a frame's rows were read while the camera moved the other way to how the
+    stand-in's stamps say it moves, so a rolling-shutter model (GC-SLAM's ``readout_time``, whose
+    ``auto`` takes a Kinect's 0.03 s from a name like the source's) would double the distortion
+    on every backward leg instead of undoing it: the stand-in declares a global shutter.
+    """
+    calib = src / CALIBRATION_FILE
+    if calib.is_file():  # its own lines (the colour camera's among them), any readout line left out
+        lines = [line for line in calib.read_text().splitlines() if line.split()[:1] != [READOUT_KEYWORD]]
+    else:  # the folder-name preset the source was read with
+        cam = seq.camera
+        values = [cam.fx, cam.fy, cam.cx, cam.cy, seq.depth_scale, cam.width, cam.height, *(cam.distortion or ())]
+        lines = [f"# fx fy cx cy depth_scale width height [distortion]  ({seq.calibration_source} of {src.name})",
+                 " ".join(repr(v) for v in values)]
+    lines += ["# there-and-back stand-in: half its frames play backward, so no rolling-shutter model applies",
+              f"{READOUT_KEYWORD} 0"]
+    path.write_text("\n".join(lines) + "\n")
 
 
 def write_revisit(src: Path, dst: Path, fps: float = 30.0, start: float = 1.0e9) -> int:
@@ -61,8 +84,7 @@ def write_revisit(src: Path, dst: Path, fps: float = 30.0, start: float = 1.0e9)
         raise SystemExit(f"{dst}: exists and is not empty")
     (dst / "rgb").mkdir(parents=True, exist_ok=True)
     (dst / "depth").mkdir(exist_ok=True)
-    if (src / "calibration.txt").is_file():
-        os.symlink((src / "calibration.txt").resolve(), dst / "calibration.txt")
+    write_calibration(src, seq, dst / "calibration.txt")
     order = revisit_order(len(seq))
     times = start + torch.arange(len(order), dtype=torch.float64) / fps
     rgb_lines, depth_lines = ["# colour images (there-and-back stand-in)"], ["# depth maps"]

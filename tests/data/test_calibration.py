@@ -11,6 +11,9 @@ from torchslam.data.calibration import (
     MIN_FOV_DEG,
     intrinsics_problem,
     read_calibration,
+    read_readout,
+    readout_for,
+    readout_preset_for,
     resolve_calibration,
 )
 from torchslam.data.synthetic import SyntheticConfig, camera_from_config
@@ -93,3 +96,62 @@ def test_synthetic_default_cameras_are_plausible_at_any_size():
     for w, h in ((640, 480), (64, 48), (17, 9), (4000, 3000)):
         cam = camera_from_config(SyntheticConfig(width=w, height=h))
         assert intrinsics_problem(cam.fx, cam.fy, cam.cx, cam.cy, w, h) is None
+
+
+# --- the sensor's rolling-shutter readout (readout_for) -------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "name,expected",
+    [
+        ("rgbd_dataset_freiburg1_xyz", (0.03, "preset:freiburg1")),
+        ("tum_fr2_desk", (0.03, "preset:freiburg2")),
+        ("7scenes_redkitchen", (0.03, "preset:7scenes")),
+        ("7-Scenes-chess", (0.03, "preset:7scenes")),
+        ("rgbd_dataset_freiburg3_long_office_household", (0.0, None)),  # not a Kinect v1: no record
+        ("icl_living_room", (0.0, None)),  # rendered: a global shutter
+        ("hololens_dvmvs", (0.0, None)),
+    ],
+)
+def test_readout_follows_the_sensor_a_folder_name_implies(tmp_path, name, expected):
+    folder = tmp_path / name
+    folder.mkdir()
+    assert readout_for(folder) == expected
+    assert readout_preset_for(name) == (None if expected[1] is None else expected[1].split(":")[1])
+
+
+def test_a_readout_line_overrides_the_name_and_leaves_the_camera_as_it_was(tmp_path):
+    folder = tmp_path / "tum_fr1_desk"
+    folder.mkdir()
+    (folder / "calibration.txt").write_text(f"# camera\n{GOOD}\nreadout 0.012\n")
+    calib = resolve_calibration(folder)
+    assert (calib.readout_time, calib.readout_source) == (0.012, "calibration.txt")
+    assert calib.camera == read_calibration(folder / "calibration.txt")[0] and calib.depth_scale == 5000
+    (folder / "calibration.txt").write_text(f"readout 0\n{GOOD}\n")  # a global shutter, stated
+    assert readout_for(folder) == (0.0, "calibration.txt")
+    (folder / "calibration.txt").write_text(f"{GOOD}\n")  # no line: the name's sensor
+    assert readout_for(folder) == (0.03, "preset:freiburg1")
+    assert read_readout(folder / "calibration.txt") is None
+
+
+@pytest.mark.parametrize(
+    "lines,match",
+    [
+        ("readout 0.2", r":3: readout: expected seconds from the first image row to the last in \[0, 0.1\].* got 0.2"),
+        ("readout -0.01", r":3: readout: expected seconds .* got -0.01"),
+        ("readout nan", r":3: readout: expected seconds .* got nan"),
+        ("readout fast", r":3: not a number"),
+        ("readout", r":3: expected 'readout SECONDS' \(1 value\), got 0 values"),
+        ("readout 0.03 0.01", r":3: expected 'readout SECONDS' \(1 value\), got 2 values"),
+        ("readout 0.03\nreadout 0.02", r":4: a second 'readout' line \(line 3 already gives one\)"),
+    ],
+)
+def test_a_bad_readout_line_names_file_and_line(tmp_path, lines, match):
+    folder = tmp_path / "tum_fr1_xyz"
+    folder.mkdir()
+    path = folder / "calibration.txt"
+    path.write_text(f"# camera\n{GOOD}\n{lines}\n")
+    with pytest.raises(DataFormatError, match=rf"^{path}{match}"):
+        read_readout(path)
+    with pytest.raises(DataFormatError, match=rf"^{path}{match}"):
+        resolve_calibration(folder)

@@ -22,6 +22,15 @@ two cameras' centres are left out: their direction is not documented, and either
 NI-SLAM's ATE on frames 0-299 of redkitchen by under 0.3 cm, against 7.3 -> 3.0 cm for the
 intrinsics alone.
 
+Rolling shutter (``readout_for``): a ``calibration.txt`` may hold a line ``readout SECONDS``, the
+time its sensor takes to read its image rows from the first to the last (0: a global shutter,
+at most ``MAX_READOUT_S``). Without one, a folder named for a dataset recorded with a Kinect v1
+(``freiburg1``/``fr1``, ``freiburg2``/``fr2``, 7-Scenes) gets ``READOUT_PRESETS``' 0.03 s: a
+Kinect v1 reads the rows of both its cameras one after another over most of its 33 ms frame
+period. Any other folder has no known readout (0): freiburg3's camera, ICL-NUIM's renderer, and
+every sensor torchslam has no record of. GC-SLAM's dense front-end models it
+(``GCSlamConfig.readout_time``).
+
 Plausibility (``intrinsics_problem``), checked wherever intrinsics enter torchslam (a
 ``calibration.txt``, an explicit camera, the presets, the synthetic generator's settings):
 
@@ -50,7 +59,8 @@ from ..geometry import PinholeCamera
 __all__ = [
     "COLOUR_PRESETS", "CameraPreset", "Calibration", "DEPTH_SCALE_RANGE", "INTRINSICS_PRESETS", "MAX_FOV_DEG",
     "MIN_FOV_DEG", "colour_preset_for", "colour_to_depth_maps", "intrinsics_problem", "preset_for_name",
-    "read_calibration", "read_colour_camera", "resolve_calibration",
+    "MAX_READOUT_S", "READOUT_PRESETS", "read_calibration", "read_colour_camera", "read_readout", "readout_for",
+    "readout_preset_for", "resolve_calibration",
 ]
 
 CALIBRATION_FILE = "calibration.txt"
@@ -135,6 +145,10 @@ class Calibration:
             where colour is registered to depth.
         colour_source: where ``colour_camera`` came from (``"calibration.txt"``,
             ``"preset:7scenes"``), or None.
+        readout_time: the sensor's rolling-shutter readout, seconds from its first image row to
+            its last (module docstring); 0 where none is known.
+        readout_source: where ``readout_time`` came from (``"calibration.txt"``,
+            ``"preset:freiburg1"``, ``"preset:7scenes"`` ...), or None where none is known.
     """
 
     camera: PinholeCamera
@@ -142,6 +156,8 @@ class Calibration:
     source: str
     colour_camera: PinholeCamera | None = None
     colour_source: str | None = None
+    readout_time: float = 0.0
+    readout_source: str | None = None
 
 
 # Published TUM RGB-D lens distortion (k1 k2 p1 p2 k3) of the freiburg1 and freiburg2 Kinects,
@@ -205,7 +221,7 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
     found: tuple[int, list[str]] | None = None
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
-        if not s or s.startswith("#") or s.split()[0] == COLOUR_KEYWORD:
+        if not s or s.startswith("#") or s.split()[0] in (COLOUR_KEYWORD, READOUT_KEYWORD):
             continue
         if found is not None:
             raise DataFormatError(
@@ -246,6 +262,58 @@ def read_calibration(path: str | os.PathLike) -> tuple[PinholeCamera, float]:
 
 
 COLOUR_KEYWORD = "colour"
+READOUT_KEYWORD = "readout"
+
+# Longest rolling-shutter readout accepted, seconds: a frame's rows cannot take longer than a
+# 10 Hz frame period.
+MAX_READOUT_S = 0.1
+
+# Readout of the sensors the folder-name presets recognise (module docstring): preset -> seconds.
+READOUT_PRESETS: dict[str, float] = {"freiburg1": 0.03, "freiburg2": 0.03, "7scenes": 0.03}
+
+
+def read_readout(path: str | os.PathLike) -> float | None:
+    """The readout of a ``calibration.txt``'s ``readout SECONDS`` line, or None without one.
+
+    Raises:
+        DataFormatError: naming the file and line for a repeated ``readout`` line, a wrong number
+            of values, a non-number, or a value outside ``[0, MAX_READOUT_S]``.
+    """
+    found = _keyword_line(path, READOUT_KEYWORD, "SECONDS")
+    if found is None:
+        return None
+    where, (value,) = found
+    if not 0.0 <= value <= MAX_READOUT_S:  # False for NaN
+        raise DataFormatError(
+            f"{where}: readout: expected seconds from the first image row to the last in [0, {MAX_READOUT_S:g}] "
+            f"(0: a global shutter, 0.03: a Kinect v1), got {value:g}"
+        )
+    return value
+
+
+def readout_preset_for(name: str) -> str | None:
+    """The ``READOUT_PRESETS`` key a sequence folder ``name`` implies, or None (module docstring)."""
+    key = preset_for_name(name)
+    if key in READOUT_PRESETS:
+        return key
+    return "7scenes" if _SEVEN_SCENES.search(name.lower()) else None
+
+
+def readout_for(root: str | os.PathLike) -> tuple[float, str | None]:
+    """``(seconds, source)`` of a sequence folder's rolling-shutter readout (module docstring):
+    its ``calibration.txt``'s ``readout`` line, else its folder name's preset, else ``(0.0, None)``.
+
+    Raises:
+        DataFormatError: for a malformed ``readout`` line (``read_readout``).
+    """
+    root = Path(root)
+    calib_path = root / CALIBRATION_FILE
+    if calib_path.is_file():
+        value = read_readout(calib_path)
+        if value is not None:
+            return value, CALIBRATION_FILE
+    key = readout_preset_for(root.resolve().name)
+    return (READOUT_PRESETS[key], f"preset:{key}") if key is not None else (0.0, None)
 
 
 def read_colour_camera(path: str | os.PathLike, camera: PinholeCamera) -> PinholeCamera | None:
@@ -259,26 +327,37 @@ def read_colour_camera(path: str | os.PathLike, camera: PinholeCamera) -> Pinhol
         DataFormatError: naming the file and line for a repeated ``colour`` line, a wrong number
             of values, a non-number or implausible intrinsics.
     """
+    found = _keyword_line(path, COLOUR_KEYWORD, "fx fy cx cy")
+    if found is None:
+        return None
+    where, (fx, fy, cx, cy) = found
+    problem = intrinsics_problem(fx, fy, cx, cy, camera.width, camera.height)
+    if problem is not None:
+        raise DataFormatError(f"{where}: implausible colour intrinsics: {problem[1]}")
+    return PinholeCamera(fx, fy, cx, cy, camera.width, camera.height)
+
+
+def _keyword_line(path: str | os.PathLike, keyword: str, names: str) -> tuple[str, list[float]] | None:
+    """``(file:line, values)`` of a ``calibration.txt``'s one ``keyword`` line of the values ``names``
+    (space-separated), or None without one; a repeated line, a wrong count or a non-number is a
+    DataFormatError naming the file and line."""
     path = Path(path)
+    n = len(names.split())
     found = None
-    for lineno, line in enumerate(Path(path).read_text().splitlines(), start=1):
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         parts = line.split()
-        if not parts or parts[0] != COLOUR_KEYWORD:
+        if not parts or parts[0] != keyword:
             continue
         where = f"{path}:{lineno}"
         if found is not None:
-            raise DataFormatError(f"{where}: a second '{COLOUR_KEYWORD}' line (line {found[0]} already gives one)")
-        if len(parts) != 5:
-            raise DataFormatError(f"{where}: expected '{COLOUR_KEYWORD} fx fy cx cy' (4 values), got {len(parts) - 1} values")
+            raise DataFormatError(f"{where}: a second '{keyword}' line (line {found[0]} already gives one)")
+        if len(parts) != n + 1:
+            raise DataFormatError(f"{where}: expected '{keyword} {names}' ({n} value{'s' if n > 1 else ''}), got {len(parts) - 1} values")
         try:
-            fx, fy, cx, cy = (float(v) for v in parts[1:])
+            found = (lineno, where, [float(v) for v in parts[1:]])
         except ValueError as exc:
             raise DataFormatError(f"{where}: not a number ({exc})") from exc
-        problem = intrinsics_problem(fx, fy, cx, cy, camera.width, camera.height)
-        if problem is not None:
-            raise DataFormatError(f"{where}: implausible colour intrinsics: {problem[1]}")
-        found = (lineno, PinholeCamera(fx, fy, cx, cy, camera.width, camera.height))
-    return None if found is None else found[1]
+    return None if found is None else found[1:]
 
 
 # Colour intrinsics of sensors whose datasets publish only the depth camera's (module docstring):
@@ -387,4 +466,6 @@ def resolve_calibration(
         preset = colour_preset_for(root.resolve().name, chosen)
         if preset is not None:
             colour_source, colour = f"preset:{preset[0]}", preset[1]
-    return Calibration(chosen, depth_scale if depth_scale is not None else fallback[1], source, colour, colour_source)
+    readout, readout_source = readout_for(root)
+    return Calibration(chosen, depth_scale if depth_scale is not None else fallback[1], source, colour, colour_source,
+                       readout, readout_source)

@@ -72,6 +72,10 @@ class Sequence(Protocol):
             NI-SLAM's ground-truth attitude are taken against it where present.
         skipped: ``(index, reason)`` of the frames the sequence could not decode and skipped
             during the last pass, in order; empty (default) for sequences that never skip.
+        readout_time: the sensor's rolling-shutter readout, seconds from its first image row to
+            its last, as far as the sequence knows it; 0 (default): a global shutter, or unknown.
+            GC-SLAM's ``readout_time=auto`` takes it.
+        readout_source: where ``readout_time`` came from, or None (default).
     """
 
     name: str
@@ -81,6 +85,8 @@ class Sequence(Protocol):
     attitude: AttitudeStream | None = None
     groundtruth_raw: Trajectory | None = None
     skipped: abc.Sequence[tuple[int, str]] = ()
+    readout_time: float = 0.0
+    readout_source: str | None = None
 
     def __len__(self) -> int: ...
 

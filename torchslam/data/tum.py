@@ -339,6 +339,11 @@ class TUMSequence:
         colour_camera: the unregistered colour image's intrinsics every colour image is
             registered with, or None (registered already, or ``register_colour=False``).
         colour_source: where ``colour_camera`` came from, or None.
+        readout_time: the sensor's rolling-shutter readout, seconds from the first image row to
+            the last: ``calibration.txt``'s ``readout`` line, else the folder name's sensor (a
+            Kinect v1 for freiburg1/2 and 7-Scenes: 0.03), else 0
+            (:func:`~torchslam.data.calibration.readout_for`).
+        readout_source: where ``readout_time`` came from, or None where none is known.
         timestamps: (N,) float64 colour timestamps of the frames, seconds.
         depth_timestamps: (N,) float64 instants of the paired depth images, seconds: their stamps
             plus ``depth_time_offset``.
@@ -422,6 +427,7 @@ class TUMSequence:
         self.camera = calib.camera
         self.depth_scale = float(calib.depth_scale)
         self.calibration_source = calib.source
+        self.readout_time, self.readout_source = calib.readout_time, calib.readout_source
         if not isinstance(register_colour, bool):
             raise ConfigError(f"register_colour: expected true or false, got {register_colour!r}")
         # An unregistered colour image is resampled onto the depth image's pixels at decode.
@@ -730,7 +736,8 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
         ``dropped_rgb``, ``dropped_depth``, ``association_max_gap_s``, ``association_mean_gap_s``,
         ``association_max_gap_allowed_s``, ``association_mean_depth_minus_colour_s``;
         ``intrinsics`` (fx, fy, cx, cy in pixels), ``intrinsics_source``, ``depth_scale``,
-        ``image_size`` (width, height); ``gt_poses`` (poses in groundtruth.txt, 0 without it),
+        ``readout_time_s`` and ``readout_source`` (the sensor's rolling-shutter readout,
+        ``TUMSequence.readout_time``), ``image_size`` (width, height); ``gt_poses`` (poses in groundtruth.txt, 0 without it),
         ``gt_frames_covered``, ``gt_coverage_fraction``, ``gt_frames_interpolated_across_gap``
         (covered frames whose bracketing poses are more than 1.5 times the median ground-truth
         spacing apart), ``gt_largest_gap_s``,
@@ -767,6 +774,8 @@ def sequence_info(root: str | os.PathLike, **kwargs) -> dict:
             "source": seq.colour_source,
         },
         "depth_scale": seq.depth_scale,
+        "readout_time_s": seq.readout_time,
+        "readout_source": seq.readout_source,
         "image_size": {"width": cam.width, "height": cam.height},
         "gt_poses": 0,
         "gt_frames_covered": 0,

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..data.calibration import MAX_READOUT_S
 from ..errors import ConfigError, ShapeError, check_shape
 from .dense import DenseFrame, DenseImages, DenseLevel, _level_camera
 
@@ -36,9 +37,6 @@ __all__ = [
 
 # Relative depth step between a pixel and its neighbours' blend below which they are one surface.
 _SMOOTH_DEPTH = 0.05
-
-# Longest readout accepted, seconds: a frame's rows cannot take longer than a 10 Hz frame period.
-MAX_READOUT_S = 0.1
 
 
 def check_readout(readout: float, name: str = "readout_time") -> float:

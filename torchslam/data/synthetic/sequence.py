@@ -28,7 +28,7 @@ from torch import Tensor
 from ...errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, FieldError, Limit, check_limits, parse_choice
 from ...geometry import PinholeCamera, se3_from_Rt
 from ...imu import AttitudeStream, ImuData, ImuNoise, Kinematics, ahrs_attitude, simulate_imu
-from ..calibration import DEPTH_SCALE_RANGE, intrinsics_problem
+from ..calibration import DEPTH_SCALE_RANGE, READOUT_KEYWORD, intrinsics_problem
 from ..frame import Frame, Sequence
 from ..trajectory import Trajectory, write_tum_trajectory
 from .motion import SyntheticTrajectory, trajectory_kinematics, trajectory_pose
@@ -216,6 +216,8 @@ class SyntheticSequence(Sequence):
         attitude: AHRS attitude from ``imu`` (source "imu"), started at the true first attitude.
         scene: the rendered scene.
         gravity_w: (3,) float64 gravity in the world frame, m/s^2.
+        readout_time: the planted rolling shutter, ``cfg.readout_time`` (``readout_source``
+            "synthetic" where it is not 0).
     """
 
     def __init__(self, cfg: SyntheticConfig | None = None, device: torch.device | str | None = None):
@@ -223,6 +225,8 @@ class SyntheticSequence(Sequence):
         self.cfg = cfg
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.name = f"synthetic-{cfg.trajectory}-seed{cfg.seed}"
+        self.readout_time = float(cfg.readout_time)
+        self.readout_source = "synthetic" if cfg.readout_time > 0 else None
         self.camera = camera_from_config(cfg)
         self.timestamps = torch.arange(cfg.frames, dtype=torch.float64) / cfg.fps
         pose = self._pose = synthetic_trajectory(cfg)
@@ -434,7 +438,7 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike, overwri
     Layout: ``rgb/<t>.png`` (8-bit colour), ``depth/<t>.png`` (16-bit, metres x depth_scale,
     0 = invalid), ``rgb.txt`` and ``depth.txt`` (``timestamp path``), ``groundtruth.txt``
     (``t tx ty tz qx qy qz qw``, camera-to-world), ``calibration.txt`` (``fx fy cx cy
-    depth_scale width height``) and ``imu.txt`` (``timestamp gx gy gz ax ay az``; rad/s and
+    depth_scale width height``, and ``readout SECONDS`` for a planted rolling shutter) and ``imu.txt`` (``timestamp gx gy gz ax ay az``; rad/s and
     m/s^2 in the IMU frame, which is the camera frame). Timestamps are written with 6 decimals.
     ``torchslam.data.TUMSequence`` reads all of it back, ``imu.txt`` included.
 
@@ -462,6 +466,8 @@ def write_tum_folder(seq: SyntheticSequence, out_dir: str | os.PathLike, overwri
     (out / "calibration.txt").write_text(
         f"{_CALIBRATION_MARK}; raw/depth_scale = metres; 0 = invalid)\n"
         f"{cam.fx:.6f} {cam.fy:.6f} {cam.cx:.6f} {cam.cy:.6f} {cfg.depth_scale:g} {cam.width} {cam.height}\n"
+        # A planted rolling shutter is the sensor's: GC-SLAM's readout_time=auto reads it back.
+        + (f"{READOUT_KEYWORD} {cfg.readout_time!r}\n" if cfg.readout_time > 0 else "")
     )
     stamps = [f"{float(t):.6f}" for t in seq.timestamps]
     depth_stamps = [f"{float(t):.6f}" for t in seq.depth_timestamps]
