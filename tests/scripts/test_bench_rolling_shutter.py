@@ -11,10 +11,10 @@ SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_rolling_shutte
 
 def test_the_dense_front_end_runs_without_and_with_the_model_and_the_rows_are_written(tmp_path):
     out = tmp_path / "r.json"
-    subprocess.run([sys.executable, str(SCRIPT), "--seeds", "100", "--frames", "12", "--size", "160x120", "--real", "",
-                    "--jobs", "2", "--out", str(out)], check=True, capture_output=True, text=True)
+    subprocess.run([sys.executable, str(SCRIPT), "--seeds", "100", "--frames", "24", "--size", "160x120", "--real", "",
+                    "--stride", "2", "--jobs", "2", "--out", str(out)], check=True, capture_output=True, text=True)
     res = json.loads(out.read_text())
-    assert res["planted_s"] == 0.03 and res["readout_s"] == 0.03 and res["size"] == [160, 120]
+    assert res["planted_s"] == 0.03 and res["readout_s"] == 0.03 and res["size"] == [160, 120] and res["stride"] == 2
     (row,) = res["rows"]
     assert row["split"] == "held out" and row["sequence"] == "synthetic orbit seed 100"
     assert row["without"]["readout_time_s"] == 0.0 and row["without"]["moved"] == {"frames": 0, "keyframes": 0}
@@ -23,7 +23,7 @@ def test_the_dense_front_end_runs_without_and_with_the_model_and_the_rows_are_wr
 
 
 def test_bad_arguments_are_refused_by_name(tmp_path):
-    for flag, value in (("--size", "big"), ("--jobs", "0")):
+    for flag, value in (("--size", "big"), ("--jobs", "0"), ("--stride", "0")):
         p = subprocess.run([sys.executable, str(SCRIPT), flag, value, "--real", "", "--out", str(tmp_path / "r.json")],
                            capture_output=True, text=True)
         assert p.returncode == 2 and f"{flag} {value}" in p.stderr

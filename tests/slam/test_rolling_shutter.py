@@ -137,6 +137,32 @@ def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
     # The first keyframe has no motion yet: frames against it stay as read; every later keyframe is moved.
     assert rs["keyframes"] == len(system.keyframes) - 1 >= 1
     assert 0 < rs["frames"] < len(seq)
-    off = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False}))
-    assert run_sequence(off, seq).output.metrics["rolling_shutter"] == {"readout_time_s": 0.0, "frames": 0, "keyframes": 0}
+    assert (rs["setting"], rs["source"]) == (0.03, "readout_time")
+    off = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False, "readout_time": 0}))
+    assert run_sequence(off, seq).output.metrics["rolling_shutter"] == {
+        "setting": 0.0, "readout_time_s": 0.0, "source": "readout_time", "frames": 0, "keyframes": 0}
+    # auto (the default) takes the sequence's planted readout: the same run as 0.03 set by hand.
+    auto = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False}))
+    out_auto = run_sequence(auto, seq).output
+    assert out_auto.metrics["rolling_shutter"] == {**rs, "setting": "auto", "source": "synthetic"}
+    torch.testing.assert_close(out_auto.T_wc, out.T_wc, rtol=0, atol=1e-9)
+
+
+def test_auto_takes_the_sequence_readout_with_the_dense_front_end_only():
+    dense, sparse = GCSlamConfig(frontend="dense"), GCSlamConfig()
+    assert dense.readout_time == sparse.readout_time == "auto"
+    planted = generate_sequence(SyntheticConfig(frames=4, readout_time=0.02, **_SMALL))
+    plain = generate_sequence(SyntheticConfig(frames=4, **_SMALL))
+    assert dense.readout_for(planted) == (0.02, "synthetic")
+    assert dense.readout_for(plain) == (0.0, None)
+    assert sparse.readout_for(planted) == (0.0, "sparse front-end")
+    assert GCSlamConfig(frontend="dense", readout_time=0).readout_for(planted) == (0.0, "readout_time")
+    assert GCSlamConfig(frontend="dense", readout_time=0.01).readout_for(plain) == (0.01, "readout_time")
+
+    class Bare:  # a sequence that implements the protocol without the optional readout
+        name = "bare"
+    assert dense.readout_for(Bare()) == (0.0, None)
+    for bad in ("fast", "Auto"):
+        with pytest.raises(ConfigError, match="readout_time"):
+            config_from_dict(GCSlamConfig, {"frontend": "dense", "readout_time": bad})
 

@@ -10,8 +10,11 @@ from ...errors import AT_LEAST_1, NON_NEGATIVE, POSITIVE, ConfigError, Limit, ch
 from ...features import ORBConfig
 from ...loop import MILDConfig
 from ...registration.dense import DenseConfig
-from ...registration.rolling import MAX_READOUT_S
+from ...registration.rolling import check_readout
 from ...registration.sparse import SparseConfig
+
+# ``readout_time``'s value that takes the sequence's own readout.
+AUTO = "auto"
 
 __all__ = ["Frontend", "GCSlamConfig"]
 
@@ -153,11 +156,16 @@ class GCSlamConfig:
         depth_refine_iterations: Gauss-Newton steps of that refinement.
         readout_time: the sensor's rolling shutter, seconds from its first image row to its last
             (0: a global shutter, as the paper assumes; a Kinect v1 reads its rows over about
-            30 ms). A frame's stamp is taken as its middle row's instant. With the dense
+            30 ms), or ``auto`` (default): the sequence's own (``Sequence.readout_time``: a
+            folder's ``calibration.txt`` ``readout`` line, else its name's sensor, 0.03 s for the
+            Kinect v1 datasets TUM freiburg1/2 and 7-Scenes, else 0;
+            :func:`~torchslam.data.calibration.readout_for`) with the dense front-end, 0 with the
+            sparse one. A frame's stamp is taken as its middle row's instant. With the dense
             front-end only: each frame's pixels are moved to the stamp with the tracker's
             constant-velocity motion before they are registered, and a keyframe's images are
             resampled so, for tracking, its pairs and its loops
             (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md, "Rolling shutter").
+            The sparse front-end refuses a number above 0.
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -199,7 +207,7 @@ class GCSlamConfig:
     loop_pair_weight: str = "auto"
     depth_refine_points: int = 3000
     depth_refine_iterations: int = 3
-    readout_time: float = 0.0
+    readout_time: float | str = "auto"
 
     LIMITS: ClassVar[dict[str, Limit]] = {
         "orb_features": AT_LEAST_1, "orb_scale": Limit(gt=1), "orb_levels": AT_LEAST_1, "orb_min_fast_threshold": Limit(ge=0, le=255),
@@ -210,7 +218,6 @@ class GCSlamConfig:
         "relocalize_keyframes": NON_NEGATIVE, "max_lost": NON_NEGATIVE, "min_valid_depth": AT_LEAST_1,
         "interpolation_max_gap": POSITIVE, "map_stride": AT_LEAST_1, "map_voxel": POSITIVE, "max_depth": POSITIVE,
         "motion_prior_max_gap": POSITIVE, "depth_refine_points": NON_NEGATIVE, "depth_refine_iterations": NON_NEGATIVE,
-        "readout_time": Limit(ge=0, le=MAX_READOUT_S),
     }
 
     def __post_init__(self) -> None:
@@ -226,11 +233,28 @@ class GCSlamConfig:
         if self.loop_pair_weight not in ("auto", "correspondences", "orb"):
             raise ConfigError(f"loop_pair_weight: expected 'auto', 'correspondences' or 'orb', got {self.loop_pair_weight!r}")
         check_limits(self)
-        if self.readout_time > 0 and self.frontend is not Frontend.DENSE:
+        if self.readout_time != AUTO:
+            try:
+                object.__setattr__(self, "readout_time", check_readout(self.readout_time, "readout_time"))
+            except ConfigError as exc:
+                raise ConfigError(f"{exc}; or '{AUTO}': the sequence's own") from None
+        if self.readout_time != AUTO and self.readout_time > 0 and self.frontend is not Frontend.DENSE:
             raise ConfigError(
                 f"readout_time: the rolling-shutter model ({self.readout_time} s) is the dense front-end's; "
                 "set frontend=dense, or readout_time=0 for the sparse front-end"
             )
+
+    def readout_for(self, sequence) -> tuple[float, str | None]:
+        """``(seconds, source)`` of the rolling-shutter readout a run of ``sequence`` models
+        (``readout_time``, ``auto`` resolved): the sequence's own with the dense front-end
+        (``Sequence.readout_time``; 0 and None where it has none), 0 and ``"sparse front-end"``
+        with the sparse one; a number as set, source ``"readout_time"``."""
+        if self.readout_time != AUTO:
+            return float(self.readout_time), "readout_time"
+        if self.frontend is not Frontend.DENSE:
+            return 0.0, "sparse front-end"
+        seconds = check_readout(getattr(sequence, "readout_time", 0.0), f"{getattr(sequence, 'name', 'sequence')}: readout_time")
+        return seconds, getattr(sequence, "readout_source", None) if seconds > 0 else None
 
     @property
     def dense_pairs(self) -> bool:

@@ -143,6 +143,8 @@ class GCSlam:
         cfg = self.cfg
         self.sequence_name = sequence.name
         self.camera: PinholeCamera = sequence.camera
+        # readout_time, auto resolved: the sequence's own rolling shutter with the dense front-end.
+        self.readout, self.readout_source = cfg.readout_for(sequence)
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
         # Every pixel's ray for lifting keyframe pixels (the pinhole factors without distortion,
@@ -264,7 +266,7 @@ class GCSlam:
             return
         kf = self.keyframes[-1]
         T_pred = self._predicted_T_kf(frame.timestamp)
-        if cfg.readout_time > 0 and kf.at_stamp:
+        if self.readout > 0 and kf.at_stamp:
             # Only against a keyframe at its stamp: one side moved and not the other is worse than neither.
             self._to_stamp(view, frame.timestamp)
         reg = self.frontend.register(kf, view, T_pred)
@@ -290,7 +292,7 @@ class GCSlam:
             reg = self._check_against_orb(kf, view, reg, clock)
             moved = self._displacement(kf, reg.T_kf)
         self._update_velocity(reg.T_kf, frame.timestamp)
-        if cfg.readout_time > 0:
+        if self.readout > 0:
             view.twist = self._velocity  # the motion at this frame, for its images if it becomes a keyframe
         self._best_correspondences = max(self._best_correspondences, reg.correspondences)
         if kf.dense is not None:
@@ -413,7 +415,7 @@ class GCSlam:
         v, t0 = self._velocity, self._last_time
         if view.dense is None or v is None or t0 is None or not self._within_prior_gap(t - t0):
             return
-        view.dense = dense_frame_at_stamp(view.dense, v.to(view.dense.levels[0].points.dtype), self.cfg.readout_time)
+        view.dense = dense_frame_at_stamp(view.dense, v.to(view.dense.levels[0].points.dtype), self.readout)
         view.twist = v
         self.rolling_shutter["frames"] += 1
 
@@ -518,10 +520,10 @@ class GCSlam:
         rebased onto the new keyframe instead of recorded again.
         """
         cfg = self.cfg
-        at_stamp = cfg.readout_time > 0 and view.dense is not None and view.twist is not None
+        at_stamp = self.readout > 0 and view.dense is not None and view.twist is not None
         if at_stamp:
             # Registered against from now on: its images at the stamp, not only its points.
-            images = dense_images_at_stamp(view.dense.images(), view.twist.to(view.dense.levels[0].grey.dtype), cfg.readout_time)
+            images = dense_images_at_stamp(view.dense.images(), view.twist.to(view.dense.levels[0].grey.dtype), self.readout)
             view.dense = images.pyramid()
             self.rolling_shutter["keyframes"] += 1
         feats = self.frontend.features(view)
@@ -660,8 +662,10 @@ class GCSlam:
             "loop_frames": [[self.keyframes[i].frame_index, self.keyframes[j].frame_index]
                             for (i, j), kind in zip(opt.pairs, kinds) if kind == "loop"],
             "tracking": dict(self.counts),
-            # readout_time's rolling-shutter model: the seconds, and the frames and keyframes it moved.
-            "rolling_shutter": {"readout_time_s": self.cfg.readout_time, **self.rolling_shutter},
+            # readout_time's rolling-shutter model: the setting, the seconds modelled and where
+            # they came from, and the frames and keyframes it moved.
+            "rolling_shutter": {"setting": self.cfg.readout_time, "readout_time_s": self.readout,
+                                "source": self.readout_source, **self.rolling_shutter},
             # Sparse front-end: registrations that kept their guided matches and those that took
             # the brute-force result.
             "registrations": dict(getattr(self.frontend, "counts", {})),
