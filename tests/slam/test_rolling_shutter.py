@@ -9,6 +9,7 @@ from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
 from torchslam.geometry import se3_exp, se3_from_Rt, se3_inverse, se3_log
+from torchslam.registration import dense as dense_module
 from torchslam.registration.dense import DenseConfig, dense_images, prepare_dense_frame, register_dense_frames
 from torchslam.registration.rolling import (
     check_readout, correct_points, dense_frame_at_stamp, dense_images_at_stamp, row_offsets,
@@ -69,6 +70,13 @@ def test_moved_points_match_the_exact_rigid_motion_and_leave_invalid_ones():
     assert float((err / move).max()) < 0.02 and float(move.max()) > 0.01
     assert torch.equal(out[~valid], points[~valid])
     assert correct_points(points, valid, twist, w, H, 0.0) is points
+    # The host path (NumPy, component by component) and the torch path (accelerators) agree.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dense_module, "HOST_FAST_PATHS", False)
+        on_torch = correct_points(points, valid, twist, w, H, 0.03)
+        on_torch32 = correct_points(points.float(), valid, twist.float(), w, H, 0.03)
+    torch.testing.assert_close(out, on_torch, rtol=0, atol=1e-12)
+    torch.testing.assert_close(correct_points(points.float(), valid, twist.float(), w, H, 0.03), on_torch32, rtol=0, atol=1e-6)
 
 
 def test_resampled_keyframe_images_come_close_to_a_global_shutter_render():
