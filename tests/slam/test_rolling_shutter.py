@@ -142,9 +142,10 @@ def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
     out = run_sequence(system, seq).output
     rs = out.metrics["rolling_shutter"]
     assert rs["readout_time_s"] == 0.03
-    # The first keyframe has no motion yet: frames against it stay as read; every later keyframe is moved.
-    assert rs["keyframes"] == len(system.keyframes) - 1 >= 1
-    assert 0 < rs["frames"] < len(seq)
+    # Every keyframe is moved: the first, made with no motion yet, with the motion of the first
+    # frame tracked against it (which stays as read; every later frame is moved).
+    assert rs["keyframes"] == len(system.keyframes) >= 2 and all(k.at_stamp for k in system.keyframes)
+    assert rs["frames"] == len(seq) - 2
     assert (rs["setting"], rs["source"]) == (0.03, "readout_time")
     off = GCSlam(config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False, "readout_time": 0}))
     assert run_sequence(off, seq).output.metrics["rolling_shutter"] == {
@@ -174,3 +175,30 @@ def test_auto_takes_the_sequence_readout_with_the_dense_front_end_only():
         with pytest.raises(ConfigError, match="readout_time"):
             config_from_dict(GCSlamConfig, {"frontend": "dense", "readout_time": bad})
 
+
+
+def test_a_keyframe_held_for_its_motion_reaches_the_optimiser_at_its_stamp_or_at_the_end():
+    seq = generate_sequence(SyntheticConfig(frames=3, seed=1, readout_time=0.03, **_SMALL))
+    cfg = config_from_dict(GCSlamConfig, {"frontend": "dense", "threaded": False, "prepare_ahead": False})
+    received = []
+
+    def run(n):
+        system = GCSlam(cfg)
+        system.start(seq)
+        submit = system._worker.submit
+        system._worker.submit = lambda ev: (received.append(ev), submit(ev))[1]
+        for k in range(n):
+            system.track(seq[k])
+        return system, system.finish()
+
+    # One frame: the first keyframe never sees a motion and is handed over as read when the run ends.
+    system, out = run(1)
+    assert [ev.kf for ev in received] == [0] and not system.keyframes[0].at_stamp
+    assert len(out.T_wc) == 1 and out.metrics["rolling_shutter"]["keyframes"] == 0
+    # Two frames: the second's tracked motion resamples it before the optimiser gets it.
+    received.clear()
+    as_read = dense_images(seq[0].rgb[None], seq[0].depth[None], seq.camera, cfg.dense)
+    system, out = run(2)
+    (ev,) = [ev for ev in received if ev.kf == 0]
+    assert system.keyframes[0].at_stamp and out.metrics["rolling_shutter"]["keyframes"] >= 1
+    assert ev.images is not None and float((ev.images.depth - as_read.depth).abs().max()) > 1e-4

@@ -47,7 +47,7 @@ import functools
 import logging
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -189,6 +189,10 @@ class GCSlam:
         # (``dense_orb_start_residual``).
         self._residuals: collections.deque[float] = collections.deque(maxlen=_RESIDUAL_WINDOW)
         self._inline_s = 0.0
+        # readout_time: a keyframe made with no motion yet (the first, an unlinked or relocalised
+        # one) waits here for the motion of the first frame tracked against it before the
+        # optimiser gets it (``_release_held``; released as read where a keyframe comes first).
+        self._held: KeyframeEvent | None = None
         self.last_frame_index: int | None = None  # the frame last given to ``track`` (TensorBoard step)
         # Frames prepared by ``prepare_ahead`` (another thread) and not yet tracked:
         # (rgb, depth, enough valid depth, the prepared view or None where not enough).
@@ -294,6 +298,8 @@ class GCSlam:
         self._update_velocity(reg.T_kf, frame.timestamp)
         if self.readout > 0:
             view.twist = self._velocity  # the motion at this frame, for its images if it becomes a keyframe
+            if self._held is not None:
+                self._release_held()  # the keyframe this frame was registered to, resampled with its motion
         self._best_correspondences = max(self._best_correspondences, reg.correspondences)
         if kf.dense is not None:
             self._residuals.append(_photometric(reg))
@@ -520,6 +526,8 @@ class GCSlam:
         rebased onto the new keyframe instead of recorded again.
         """
         cfg = self.cfg
+        if self._held is not None:
+            self._release_held()
         at_stamp = self.readout > 0 and view.dense is not None and view.twist is not None
         if at_stamp:
             # Registered against from now on: its images at the stamp, not only its points.
@@ -561,11 +569,10 @@ class GCSlam:
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote,
                             images, refine)
-        t_submit = time.perf_counter()
-        self._worker.submit(ev)
-        if not self._worker.threaded:
-            # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
-            self._inline_s += time.perf_counter() - t_submit
+        if self.readout > 0 and view.dense is not None and not at_stamp:
+            self._held = ev  # no motion to resample it with yet: the next frame's (_release_held)
+        else:
+            self._submit(ev)
         self.frames.link(kid, reference, T_ref)
         if promote:
             self.frames.rebase_last(kid)
@@ -576,6 +583,30 @@ class GCSlam:
         self._best_correspondences = 0
         self._link_correspondences = 0
         self.monitor.scalar("progress/keyframes", kid + 1, frame.index)
+
+    def _submit(self, ev: KeyframeEvent) -> None:
+        t_submit = time.perf_counter()
+        self._worker.submit(ev)
+        if not self._worker.threaded:
+            # Inline optimisation is reported under the optimiser's own stages, not the tracker's.
+            self._inline_s += time.perf_counter() - t_submit
+
+    def _release_held(self) -> None:
+        """Hand the optimiser the keyframe held for a motion (``readout_time``), its images first
+        resampled to its stamp with the motion tracked since (the step to the frame after it),
+        where there is one: the tracker then registers later frames, moved alike, against those
+        images, and the optimiser registers its pairs and loops with them."""
+        ev, self._held = self._held, None
+        kf = self.keyframes[ev.kf]
+        v = self._velocity
+        if v is not None and kf.dense is not None:
+            dtype = kf.dense.levels[0].grey.dtype
+            images = dense_images_at_stamp(kf.dense.images(), v.to(dtype), self.readout)
+            kf.dense, kf.at_stamp = images.pyramid(), True
+            self.rolling_shutter["keyframes"] += 1
+            if ev.images is not None:
+                ev = replace(ev, images=images)
+        self._submit(ev)
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
@@ -608,6 +639,8 @@ class GCSlam:
             raise TorchSlamError("GCSlam.finish() called before start()")
         t0 = time.perf_counter()
         self._ahead.clear()  # frames prepared and never tracked (a stop before the end)
+        if self._held is not None:
+            self._release_held()
         self._worker.join()
         opt = self.optimizer
         opt.finish()
