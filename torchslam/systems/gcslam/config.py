@@ -164,8 +164,10 @@ class GCSlamConfig:
             front-end only: each frame's pixels are moved to the stamp with the tracker's
             constant-velocity motion before they are registered, and a keyframe's images are
             resampled so, for tracking, its pairs and its loops
-            (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md, "Rolling shutter").
-            The sparse front-end refuses a number above 0.
+            (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md, "Rolling shutter");
+            a keyframe made with no motion yet (the first, one after a loss) is resampled with
+            the motion of the first frame tracked against it, before the optimiser gets it. The
+            sparse front-end refuses a number above 0.
     """
 
     frontend: Frontend = Frontend.SPARSE
