@@ -411,7 +411,8 @@ def resolve_calibration(
         depth_scale: explicit raw depth units per metre, or None.
 
     Returns:
-        The chosen calibration and its source.
+        The chosen calibration and its source, with the sensor's rolling-shutter readout
+        (:func:`readout_for`: the file's ``readout`` line, else the folder name's sensor, else 0).
 
     Raises:
         DataFormatError: when neither argument, file nor preset gives a value (the message says
