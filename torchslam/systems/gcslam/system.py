@@ -64,7 +64,7 @@ from ...geometry import (
     PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
     undistorted_rays,
 )
-from ...registration.dense import DenseFrame, dense_images
+from ...registration.dense import DenseFrame, DenseImages, dense_images
 from ...registration.rolling import dense_frame_at_stamp, dense_images_at_stamp
 from ...registration.sparse import FrameFeatures, SparseResult, register_sparse_batch
 from ...stamps import STAMP_TOLERANCE_S
@@ -531,9 +531,7 @@ class GCSlam:
         at_stamp = self.readout > 0 and view.dense is not None and view.twist is not None
         if at_stamp:
             # Registered against from now on: its images at the stamp, not only its points.
-            images = dense_images_at_stamp(view.dense.images(), view.twist.to(view.dense.levels[0].grey.dtype), self.readout)
-            view.dense = images.pyramid()
-            self.rolling_shutter["keyframes"] += 1
+            view.dense = self._keyframe_at_stamp(view.dense, view.twist).pyramid()
         feats = self.frontend.features(view)
         rgb, depth = view.rgb, view.depth
         kid = len(self.keyframes)
@@ -600,13 +598,16 @@ class GCSlam:
         kf = self.keyframes[ev.kf]
         v = self._velocity
         if v is not None and kf.dense is not None:
-            dtype = kf.dense.levels[0].grey.dtype
-            images = dense_images_at_stamp(kf.dense.images(), v.to(dtype), self.readout)
+            images = self._keyframe_at_stamp(kf.dense, v)
             kf.dense, kf.at_stamp = images.pyramid(), True
-            self.rolling_shutter["keyframes"] += 1
             if ev.images is not None:
                 ev = replace(ev, images=images)
         self._submit(ev)
+
+    def _keyframe_at_stamp(self, dense: DenseFrame, twist: Tensor) -> DenseImages:
+        """A keyframe's working images resampled to its stamp with ``twist`` (``readout_time``), counted."""
+        self.rolling_shutter["keyframes"] += 1
+        return dense_images_at_stamp(dense.images(), twist.to(dense.levels[0].grey.dtype), self.readout)
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
