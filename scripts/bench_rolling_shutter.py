@@ -1,12 +1,12 @@
-"""GC-SLAM's rolling-shutter model (``readout_time``): the dense front-end without and with it.
+"""GC-SLAM's rolling-shutter model (``readout_time``): a front-end without and with it.
 
     python scripts/bench_rolling_shutter.py [--seeds 100,101,102,103,104] [--planted 0.03]
                                             [--readout 0.03] [--frames 300] [--size 640x480] [--trajectory orbit]
                                             [--real tum_fr1_xyz,7scenes_redkitchen,hololens_dvmvs]
-                                            [--stride 1] [--jobs 2] [--out PATH]
+                                            [--stride 1] [--jobs 2] [--frontend dense|sparse] [--out PATH]
 
 Each case is run as ``torchslam run`` runs it (a fresh process, one torch thread, no
-TensorBoard), GC-SLAM's dense front-end at its defaults, once with ``readout_time=0`` (a
+TensorBoard), GC-SLAM's ``--frontend`` (dense unless set) at its defaults, once with ``readout_time=0`` (a
 global shutter) and once with ``readout_time=--readout`` (both set explicitly: the default,
 ``auto``, takes the sequence's own readout):
 
@@ -47,8 +47,8 @@ def _torchslam(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "torchslam", *args], check=True, env=env, stdout=subprocess.DEVNULL)
 
 
-def _run(folder: Path, readout: float, out: Path, stride: int = 1) -> dict:
-    _torchslam("run", "--system", "gcslam", "--set", "frontend=dense", "--set", f"readout_time={readout}", "--data", str(folder),
+def _run(folder: Path, readout: float, out: Path, stride: int = 1, frontend: str = "dense") -> dict:
+    _torchslam("run", "--system", "gcslam", "--set", f"frontend={frontend}", "--set", f"readout_time={readout}", "--data", str(folder),
                "--set", f"data.stride={stride}", "--out", str(out), "--no-tensorboard", "--no-progress")
     m = json.loads((out / "metrics.json").read_text())
     return {"readout_time_s": readout, "ate_cm": 100.0 * m["ate_rmse_m"], "keyframes": m["keyframes"],
@@ -67,6 +67,7 @@ def main() -> None:
     ap.add_argument("--real", default=",".join(REAL), help="real sequences under TORCHSLAM_DATA, comma-separated ('' for none)")
     ap.add_argument("--stride", type=int, default=1, help="run every N-th frame (data.stride)")
     ap.add_argument("--jobs", type=int, default=2, help="runs at once")
+    ap.add_argument("--frontend", choices=("dense", "sparse"), default="dense", help="GC-SLAM's front-end")
     ap.add_argument("--out", type=Path, default=RESULTS / "rolling_shutter" / "bench_rolling_shutter.json")
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",") if s]
@@ -93,17 +94,17 @@ def main() -> None:
             split = "held out" if seed >= 100 else "tuning"
             rs, gs = folders[(seed, args.planted)].result(), folders[(seed, 0.0)].result()
             name = f"synthetic {args.trajectory} seed {seed}"
-            jobs.append((name, split, "without", pool.submit(_run, rs, 0.0, tmp / f"{rs.name}-0", args.stride)))
-            jobs.append((name, split, "with", pool.submit(_run, rs, args.readout, tmp / f"{rs.name}-r", args.stride)))
-            jobs.append((name, split, "global_shutter", pool.submit(_run, gs, 0.0, tmp / f"{gs.name}-0", args.stride)))
+            jobs.append((name, split, "without", pool.submit(_run, rs, 0.0, tmp / f"{rs.name}-0", args.stride, args.frontend)))
+            jobs.append((name, split, "with", pool.submit(_run, rs, args.readout, tmp / f"{rs.name}-r", args.stride, args.frontend)))
+            jobs.append((name, split, "global_shutter", pool.submit(_run, gs, 0.0, tmp / f"{gs.name}-0", args.stride, args.frontend)))
         for name in [n for n in args.real.split(",") if n]:
             folder = data_root() / name
             if not folder.is_dir():
                 print(f"{folder}: absent, left out")
                 continue
             split = REAL.get(name, "held out")
-            jobs.append((name, split, "without", pool.submit(_run, folder, 0.0, tmp / f"{name}-0", args.stride)))
-            jobs.append((name, split, "with", pool.submit(_run, folder, args.readout, tmp / f"{name}-r", args.stride)))
+            jobs.append((name, split, "without", pool.submit(_run, folder, 0.0, tmp / f"{name}-0", args.stride, args.frontend)))
+            jobs.append((name, split, "with", pool.submit(_run, folder, args.readout, tmp / f"{name}-r", args.stride, args.frontend)))
         rows: dict[str, dict] = {}
         for name, split, kind, fut in jobs:
             rows.setdefault(name, {"sequence": name, "split": split})[kind] = fut.result()
@@ -111,7 +112,7 @@ def main() -> None:
             ref = f", global shutter {row['global_shutter']['ate_cm']:.3f}" if "global_shutter" in row else ""
             print(f"{row['split']:9s} {row['sequence']:28s} ATE {row['without']['ate_cm']:.3f} -> {row['with']['ate_cm']:.3f} cm{ref}")
     write_json(args.out, {"planted_s": args.planted, "readout_s": args.readout, "frames": args.frames, "size": [width, height],
-                          "trajectory": args.trajectory, "stride": args.stride, "threads": 1, "jobs": args.jobs, "rows": list(rows.values())})
+                          "trajectory": args.trajectory, "stride": args.stride, "frontend": args.frontend, "threads": 1, "jobs": args.jobs, "rows": list(rows.values())})
 
 
 if __name__ == "__main__":

@@ -8,12 +8,14 @@ import torch
 from torchslam.config import config_from_dict
 from torchslam.data.synthetic import SyntheticConfig, generate_sequence
 from torchslam.errors import ConfigError
-from torchslam.geometry import se3_exp, se3_from_Rt, se3_inverse, se3_log
+from torchslam.geometry import se3_exp, se3_from_Rt, se3_inverse, se3_log, undistorted_rays
 from torchslam.registration import dense as dense_module
 from torchslam.registration.dense import DenseConfig, dense_images, prepare_dense_frame, register_dense_frames
+from torchslam.registration.depth_align import refine_with_depth, sample_depth_points
 from torchslam.registration.rolling import (
-    check_readout, correct_points, dense_frame_at_stamp, dense_images_at_stamp, row_offsets,
+    check_readout, correct_points, correct_rows, dense_frame_at_stamp, dense_images_at_stamp, features_at_stamp, row_offsets,
 )
+from torchslam.registration.sparse import frame_features
 from torchslam.systems.base import run_sequence
 from torchslam.systems.gcslam import GCSlam, GCSlamConfig
 
@@ -79,6 +81,64 @@ def test_moved_points_match_the_exact_rigid_motion_and_leave_invalid_ones():
     torch.testing.assert_close(correct_points(points.float(), valid, twist.float(), w, H, 0.03), on_torch32, rtol=0, atol=1e-6)
 
 
+def test_points_at_given_rows_move_as_the_pixel_grid_does_and_orb_points_by_their_keypoint_rows():
+    g = torch.Generator().manual_seed(1)
+    B, h, w = 2, 8, 5
+    points = torch.rand(B, h * w, 3, generator=g, dtype=torch.float64) + torch.tensor([-0.5, -0.5, 1.0])
+    valid = torch.rand(B, h * w, generator=g) > 0.3
+    twist = torch.randn(B, 6, generator=g, dtype=torch.float64)
+    rows = torch.arange(h, dtype=torch.float64).repeat_interleave(w).expand(B, -1)
+    # Full-resolution pixel rows: the same move as correct_points' (its host path, float64).
+    torch.testing.assert_close(correct_rows(points, rows, valid, twist, h, 0.03), correct_points(points, valid, twist, w, h, 0.03),
+                               rtol=0, atol=1e-12)
+    assert correct_rows(points, rows, valid, twist, h, 0.0) is points
+    with pytest.raises(ConfigError, match="readout"):
+        correct_rows(points, rows, valid, twist, h, -1.0)
+    # ORB features: each point by its keypoint's (sub-pixel) row; keypoints, descriptors and validity kept.
+    seq = generate_sequence(SyntheticConfig(frames=1, seed=3, **_SMALL))
+    f = frame_features(seq[0].rgb, seq[0].depth, seq.camera)
+    tw = twist[0]
+    moved = features_at_stamp(f, tw, seq.camera.height, 0.03)
+    assert moved.keypoints is f.keypoints and moved.descriptors is f.descriptors and moved.valid is f.valid
+    expect = correct_rows(f.points[None], f.keypoints[None, :, 1], f.valid[None], tw[None], seq.camera.height, 0.03)[0]
+    torch.testing.assert_close(moved.points, expect, rtol=0, atol=0)
+    assert torch.equal(moved.points[~f.valid], f.points[~f.valid])
+    away = f.valid & ((f.keypoints[:, 1] - (seq.camera.height - 1) / 2).abs() > 20)
+    assert int(away.sum()) > 20 and float((moved.points - f.points)[away].norm(dim=-1).min()) > 0  # rows off the middle move
+    assert features_at_stamp(f, tw, seq.camera.height, 0.0) is f
+
+
+def test_depth_refinement_against_a_rolling_shutter_keyframe_lands_closer_with_its_motion():
+    """A keyframe's depth read with a planted 30 ms rolling shutter, a frame's depth samples at
+    its stamp (a global-shutter twin): refined from the true pose, the refinement that knows the
+    keyframe's motion stays near the truth, the one that does not drifts; host and torch paths agree."""
+    import torchslam.registration.depth_align as module
+
+    cfg = dict(frames=16, seed=4, trajectory="handheld", **_SMALL)
+    rolled, glob = generate_sequence(SyntheticConfig(readout_time=0.03, **cfg)), generate_sequence(SyntheticConfig(**cfg))
+    cam = rolled.camera
+    i, j = 6, 10
+    T_ij = se3_inverse(rolled.groundtruth.T_wc[i].to(torch.float64)) @ rolled.groundtruth.T_wc[j].to(torch.float64)
+    pts = sample_depth_points(glob[j].depth, undistorted_rays(cam), 3000, 0.1, 10.0)
+    no_orb = torch.zeros(0, 3, dtype=torch.float64)
+    args = (T_ij, rolled[i].depth, cam, pts, no_orb, no_orb, torch.zeros(0, dtype=torch.bool), 4)
+    tw = _twist(rolled, i)
+
+    def error(T):
+        return float((se3_inverse(T_ij) @ T)[:3, 3].norm())
+
+    plain, _ = refine_with_depth(*args)
+    known, used = refine_with_depth(*args, twist_i=tw, readout=0.03)
+    assert used > 1000
+    assert error(known) < 0.4 * error(plain), (error(known), error(plain))
+    assert torch.equal(refine_with_depth(*args, twist_i=tw, readout=0.0)[0], plain)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(module, "numpy_viewable", lambda x: False)
+        on_torch, used_torch = refine_with_depth(*args, twist_i=tw, readout=0.03)
+    torch.testing.assert_close(on_torch, known, rtol=0, atol=1e-10)
+    assert used_torch == used
+
+
 def test_resampled_keyframe_images_come_close_to_a_global_shutter_render():
     cfg = dict(frames=12, seed=1, **_SMALL)
     rolled, glob = generate_sequence(SyntheticConfig(readout_time=0.03, **cfg)), generate_sequence(SyntheticConfig(**cfg))
@@ -129,10 +189,33 @@ def test_a_bad_readout_is_refused_by_name(value):
         correct_points(torch.zeros(1, 4, 3), torch.ones(1, 4, dtype=torch.bool), torch.zeros(1, 6), 2, 480, value)
 
 
-def test_the_sparse_front_end_refuses_a_readout_it_does_not_model():
-    with pytest.raises(ConfigError, match=r"readout_time: .*frontend=dense"):
-        config_from_dict(GCSlamConfig, {"frontend": "sparse", "readout_time": 0.03})
-    assert config_from_dict(GCSlamConfig, {"frontend": "sparse", "readout_time": 0}).readout_time == 0
+def test_gcslam_sparse_moves_orb_points_of_frames_and_keyframes():
+    seq = generate_sequence(SyntheticConfig(frames=24, seed=1, readout_time=0.03, **_SMALL))
+    base = {"frontend": "sparse", "threaded": False, "prepare_ahead": False}
+    system = GCSlam(config_from_dict(GCSlamConfig, {**base, "readout_time": 0.03}))
+    sent = []
+    system.start(seq)
+    submit = system._worker.submit
+    system._worker.submit = lambda ev: (sent.append(ev), submit(ev))[1]
+    for k in range(len(seq)):
+        system.track(seq[k])
+    out = system.finish()
+    rs = out.metrics["rolling_shutter"]
+    assert (rs["setting"], rs["readout_time_s"], rs["source"]) == (0.03, 0.03, "readout_time")
+    assert rs["keyframes"] == len(system.keyframes) >= 2 and all(k.at_stamp and k.twist is not None for k in system.keyframes)
+    assert rs["frames"] == len(seq) - 2  # the first (a keyframe) and the one tracked against it as read
+    # What the optimiser gets (loops, MILD) is the keyframe's moved ORB points, keypoints as read.
+    for ev in sent:
+        kf = system.keyframes[ev.kf]
+        raw = frame_features(seq[kf.frame_index].rgb, seq[kf.frame_index].depth, seq.camera)
+        assert torch.equal(ev.features.keypoints, raw.keypoints) and ev.features.points is kf.features.points
+        assert float((ev.features.points - raw.points)[raw.valid].norm(dim=-1).max()) > 1e-4
+    # auto (the default) takes the planted readout with the sparse front-end too.
+    auto = run_sequence(GCSlam(config_from_dict(GCSlamConfig, base)), seq).output
+    assert auto.metrics["rolling_shutter"] == {**rs, "setting": "auto", "source": "synthetic"}
+    torch.testing.assert_close(auto.T_wc, out.T_wc, rtol=0, atol=1e-9)
+    off = run_sequence(GCSlam(config_from_dict(GCSlamConfig, {**base, "readout_time": 0})), seq).output
+    assert off.metrics["rolling_shutter"]["frames"] == off.metrics["rolling_shutter"]["keyframes"] == 0
 
 
 def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
@@ -157,14 +240,14 @@ def test_gcslam_dense_moves_frames_and_keyframes_and_reports_them():
     torch.testing.assert_close(out_auto.T_wc, out.T_wc, rtol=0, atol=1e-9)
 
 
-def test_auto_takes_the_sequence_readout_with_the_dense_front_end_only():
+def test_auto_takes_the_sequence_readout_with_either_front_end():
     dense, sparse = GCSlamConfig(frontend="dense"), GCSlamConfig()
     assert dense.readout_time == sparse.readout_time == "auto"
     planted = generate_sequence(SyntheticConfig(frames=4, readout_time=0.02, **_SMALL))
     plain = generate_sequence(SyntheticConfig(frames=4, **_SMALL))
-    assert dense.readout_for(planted) == (0.02, "synthetic")
-    assert dense.readout_for(plain) == (0.0, None)
-    assert sparse.readout_for(planted) == (0.0, "sparse front-end")
+    assert dense.readout_for(planted) == sparse.readout_for(planted) == (0.02, "synthetic")
+    assert dense.readout_for(plain) == sparse.readout_for(plain) == (0.0, None)
+    assert GCSlamConfig(readout_time=0.03).readout_for(plain) == (0.03, "readout_time")
     assert GCSlamConfig(frontend="dense", readout_time=0).readout_for(planted) == (0.0, "readout_time")
     assert GCSlamConfig(frontend="dense", readout_time=0.01).readout_for(plain) == (0.01, "readout_time")
 

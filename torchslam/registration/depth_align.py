@@ -96,6 +96,7 @@ def refine_with_depth(
     orb_i: Tensor, orb_j: Tensor, orb_inliers: Tensor, iterations: int,
     depth_edge_tolerance: float = 0.1, correspondence_threshold: float = 0.02,
     floor_geometric: float = 1e-3, floor_orb: float = 1e-3, min_points: int = 100,
+    twist_i: Tensor | None = None, readout: float = 0.0,
 ) -> tuple[Tensor, int]:
     """Refine ``T`` (4, 4) float64, ``p_i = T p_j``, with frame j's depth points against frame i's depth image.
 
@@ -112,18 +113,27 @@ def refine_with_depth(
         floor_geometric: lower bound of the depth residuals' scale (of ``r_Z / z^2``).
         floor_orb: lower bound of the ORB residuals' scale (of ``|r| / z``).
         min_points: with fewer depth residuals counted, ``T`` is returned unchanged.
+        twist_i, readout: frame i's rolling shutter (``readout`` seconds from its first row to
+            its last, ``twist_i`` (6,) its body twist per second, translation first;
+            :mod:`~torchslam.registration.rolling`): each point ``q`` at frame i's stamp is
+            compared with the depth its row read, at ``q - delta (w x q + v)`` (``delta`` the
+            row's time from the stamp, the row where ``q`` projects). None or 0: a global shutter.
+            The Jacobian leaves the small ``delta`` term out.
 
     Returns:
         The refined pose, and the depth residuals counted at the last step (0: not refined).
     """
+    rolling = None if twist_i is None or readout == 0.0 else (twist_i.to(torch.float64).reshape(6), float(readout))
     if all(numpy_viewable(x) for x in (T, depth_i, points_j, orb_i, orb_j, orb_inliers)):
         Tn, used = _refine_numpy(
             T.to(torch.float64).numpy(), depth_i.reshape(depth_i.shape[-2:]).numpy(), camera, points_j.to(torch.float64).numpy(),
             orb_i.to(torch.float64).numpy(), orb_j.to(torch.float64).numpy(), orb_inliers.numpy(), iterations,
             depth_edge_tolerance, correspondence_threshold, floor_geometric, floor_orb, min_points,
+            None if rolling is None else (rolling[0].cpu().numpy(), rolling[1]),
         )
         return torch.from_numpy(Tn), used
     depth = depth_i.reshape(depth_i.shape[-2:])
+    rows = depth.shape[0]
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     dist = camera.distortion if camera.has_distortion else None
     oi = orb_i[orb_inliers].to(torch.float64)
@@ -135,6 +145,8 @@ def refine_with_depth(
     for _ in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
         q = points_j @ R.T + t
+        if rolling is not None:
+            q = _at_row_instant(q, rolling[0].to(q.device), rolling[1], fy, cy, rows)
         z = q[:, 2]
         front = z > 1e-3
         zs = torch.where(front, z, torch.ones_like(z))
@@ -198,9 +210,19 @@ def refine_with_depth(
     return T, used
 
 
+def _at_row_instant(q: Tensor, twist: Tensor, readout: float, fy: float, cy: float, rows: int) -> Tensor:
+    """(N, 3) points ``q`` at a rolling-shutter frame's stamp moved into the camera of the
+    instant its row, the one ``q`` projects to (pinhole rows), was read."""
+    zs = q[:, 2].clamp_min(1e-3)
+    delta = readout * ((fy * q[:, 1] / zs + cy) - (rows - 1) / 2) / rows
+    motion = torch.linalg.cross(twist[3:].expand_as(q), q, dim=-1) + twist[:3]
+    return q - delta[:, None] * motion
+
+
 def _refine_numpy(
     T: np.ndarray, depth: np.ndarray, camera: PinholeCamera, pts: np.ndarray, oi: np.ndarray, oj: np.ndarray,
     inl: np.ndarray, iterations: int, tol: float, thr: float, floor_g: float, floor_o: float, min_points: int,
+    rolling: tuple[np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, int]:
     """:func:`refine_with_depth` in float64 NumPy on host arrays: the same steps, with the
     coordinates held as planes ``(3, N)`` (a few thousand points, where the count of operations
@@ -217,7 +239,7 @@ def _refine_numpy(
     used = 0
     for _ in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
-        rz, ok, inv_z = _depth_terms_numpy(T, P, flat, W, H, camera, tol, thr, J)
+        rz, ok, inv_z = _depth_terms_numpy(T, P, flat, W, H, camera, tol, thr, J, rolling)
         n_ok = int(np.count_nonzero(ok))
         if n_ok < min_points:
             return T, used
@@ -268,15 +290,21 @@ def _refine_numpy(
 
 def _depth_terms_numpy(
     T: np.ndarray, P: np.ndarray, flat: np.ndarray, W: int, H: int, camera: PinholeCamera, tol: float, thr: float,
-    J: np.ndarray,
+    J: np.ndarray, rolling: tuple[np.ndarray, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The depth residuals ``r_Z`` of points ``P`` (3, N) at ``T`` against the image ``flat``
     (H * W), where they count, and ``1 / q_z``; ``J`` (6, N) receives ``d r_Z / d xi`` (left
-    update, translation first), before the division by ``z^2``."""
+    update, translation first), before the division by ``z^2``. ``rolling``: the image's
+    (twist, readout), as :func:`refine_with_depth`'s."""
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     dist = camera.distortion if camera.has_distortion else None
     q = T[:3, :3] @ P
     q += T[:3, 3:]
+    if rolling is not None:
+        (vx, vy, vz, wx, wy, wz), readout = rolling
+        q0, q1, q2 = q
+        delta = readout * ((fy * q1 / np.maximum(q2, 1e-3) + cy) - (H - 1) / 2) / H
+        q = q - delta * np.stack([wy * q2 - wz * q1 + vx, wz * q0 - wx * q2 + vy, wx * q1 - wy * q0 + vz])
     z = q[2]
     front = z > 1e-3
     zs = np.where(front, z, 1.0)

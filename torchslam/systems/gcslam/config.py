@@ -159,15 +159,17 @@ class GCSlamConfig:
             30 ms), or ``auto`` (default): the sequence's own (``Sequence.readout_time``: a
             folder's ``calibration.txt`` ``readout`` line, else its name's sensor, 0.03 s for the
             Kinect v1 datasets TUM freiburg1/2 and 7-Scenes, else 0;
-            :func:`~torchslam.data.calibration.readout_for`) with the dense front-end, 0 with the
-            sparse one. A frame's stamp is taken as its middle row's instant. With the dense
-            front-end only: each frame's pixels are moved to the stamp with the tracker's
-            constant-velocity motion before they are registered, and a keyframe's images are
-            resampled so, for tracking, its pairs and its loops
-            (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md, "Rolling shutter");
-            a keyframe made with no motion yet (the first, one after a loss) is resampled with
-            the motion of the first frame tracked against it, before the optimiser gets it. The
-            sparse front-end refuses a number above 0.
+            :func:`~torchslam.data.calibration.readout_for`). A frame's stamp is taken as its
+            middle row's instant. What a front-end registers of each frame is moved to the stamp
+            with the tracker's constant-velocity motion before it is registered: the dense
+            pyramid's points, or the sparse front-end's ORB points and depth samples. A keyframe
+            is moved so for tracking, its pairs and its loops: the dense front-end resamples its
+            images; the sparse one moves its ORB points, resamples the working images of its
+            dense pairs, and its depth refinement compares each point with the keyframe depth
+            its row read (:mod:`torchslam.registration.rolling`; docs/results/gcslam.md,
+            "Rolling shutter"). A keyframe made with no motion yet (the first, one after a loss)
+            is moved with the motion of the first frame tracked against it, before the optimiser
+            gets it.
     """
 
     frontend: Frontend = Frontend.SPARSE
@@ -240,21 +242,13 @@ class GCSlamConfig:
                 object.__setattr__(self, "readout_time", check_readout(self.readout_time, "readout_time"))
             except ConfigError as exc:
                 raise ConfigError(f"{exc}; or '{AUTO}': the sequence's own") from None
-        if self.readout_time != AUTO and self.readout_time > 0 and self.frontend is not Frontend.DENSE:
-            raise ConfigError(
-                f"readout_time: the rolling-shutter model ({self.readout_time} s) is the dense front-end's; "
-                "set frontend=dense, or readout_time=0 for the sparse front-end"
-            )
 
     def readout_for(self, sequence) -> tuple[float, str | None]:
         """``(seconds, source)`` of the rolling-shutter readout a run of ``sequence`` models
-        (``readout_time``, ``auto`` resolved): the sequence's own with the dense front-end
-        (``Sequence.readout_time``; 0 and None where it has none), 0 and ``"sparse front-end"``
-        with the sparse one; a number as set, source ``"readout_time"``."""
+        (``readout_time``, ``auto`` resolved): the sequence's own (``Sequence.readout_time``; 0
+        and None where it has none); a number as set, source ``"readout_time"``."""
         if self.readout_time != AUTO:
             return float(self.readout_time), "readout_time"
-        if self.frontend is not Frontend.DENSE:
-            return 0.0, "sparse front-end"
         seconds = check_readout(getattr(sequence, "readout_time", 0.0), f"{getattr(sequence, 'name', 'sequence')}: readout_time")
         return seconds, getattr(sequence, "readout_source", None) if seconds > 0 else None
 

@@ -31,6 +31,7 @@ from ...fastgo import PairStats
 from ...geometry import PinholeCamera, undistorted_rays
 from ...registration.dense import DenseFrame, DenseResult, prepare_dense_frame, register_dense_frames
 from ...registration.depth_align import refine_with_depth, sample_depth_points
+from ...registration.rolling import correct_rows, dense_frame_at_stamp, features_at_stamp
 from ...registration.sparse import FrameFeatures, SparseResult, frame_features, register_sparse, register_sparse_batch
 from ..memory import DENSE_BYTES_PER_WORKING_PIXEL
 from .config import Frontend, GCSlamConfig
@@ -60,6 +61,9 @@ class PreparedFrame:
         twist: (6,) float64 the camera's motion at the frame, per second (translation first, in
             its own coordinates), once the tracker has an estimate: what ``readout_time``'s
             rolling-shutter model moves the frame's pixels with; None before.
+        moved: the twist the frame's registered points were moved to its stamp with
+            (:meth:`TrackingFrontend.to_stamp`), None while they are as read.
+        features_as_read: the ORB features before the sparse front-end moved them, else None.
     """
 
     rgb: Tensor
@@ -67,6 +71,8 @@ class PreparedFrame:
     features: FrameFeatures | None = None
     dense: DenseFrame | None = None
     twist: Tensor | None = None
+    moved: Tensor | None = None
+    features_as_read: FrameFeatures | None = None
 
 
 class RegistrationTarget(Protocol):
@@ -75,6 +81,7 @@ class RegistrationTarget(Protocol):
     features: FrameFeatures
     dense: DenseFrame | None
     depth: Tensor | None
+    twist: Tensor | None  # the motion its points or images were moved to its stamp with (readout_time), else None
 
 
 @dataclass(frozen=True)
@@ -111,7 +118,8 @@ class TrackingFrontend:
         """Whether registrations read the keyframe's depth image (``RegistrationTarget.depth``)."""
         return False
 
-    def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
+    def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator,
+                 readout: float = 0.0) -> None:
         """
         Args:
             cfg: GC-SLAM settings.
@@ -119,11 +127,13 @@ class TrackingFrontend:
             rays: (H*W, 2) undistorted normalised rays (:func:`~torchslam.geometry.undistorted_rays`)
                 of a camera with distortion, else None.
             generator: the tracker's source of RANSAC seeds (shared with relocalisation).
+            readout: the sequence's rolling-shutter readout, seconds (``readout_time`` resolved).
         """
         self.cfg = cfg
         self.camera = camera
         self.rays = rays
         self.generator = generator
+        self.readout = readout
         self.orb_cfg = cfg.orb()
 
     def features(self, frame: PreparedFrame) -> FrameFeatures:
@@ -148,6 +158,11 @@ class TrackingFrontend:
         """Register ``frame`` to ``keyframe``; ``T_guess`` (4, 4) float64 is the last frame's ``T_kf``."""
         raise NotImplementedError
 
+    def to_stamp(self, frame: PreparedFrame, twist: Tensor) -> None:
+        """Move what :meth:`register` reads of ``frame`` (its points) to its stamp with ``twist``
+        (6,) (``readout_time``): the dense pyramid's points, or the sparse front-end's ORB points."""
+        raise NotImplementedError
+
     @staticmethod
     def memory(cfg: GCSlamConfig, camera: PinholeCamera, batch: int) -> dict[str, tuple[int, str]]:
         """Working memory beyond the images, for ``systems.memory``: ``{what: (bytes, why)}``."""
@@ -167,8 +182,9 @@ class SparseFrontend(TrackingFrontend):
 
     kind = Frontend.SPARSE
 
-    def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> None:
-        super().__init__(cfg, camera, rays, generator)
+    def __init__(self, cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator,
+                 readout: float = 0.0) -> None:
+        super().__init__(cfg, camera, rays, generator, readout)
         self.counts = {"guided": 0, "fallback": 0, "depth_refined": 0}
         self._pixel_rays: Tensor | None = None
 
@@ -188,6 +204,15 @@ class SparseFrontend(TrackingFrontend):
         self.counts["guided" if bool(res.guided[0]) else "fallback"] += 1
         return Registration(bool(res.success[0]), self._with_depth(keyframe, frame, res), res, int(res.num_inliers[0]))
 
+    def to_stamp(self, frame: PreparedFrame, twist: Tensor) -> None:
+        """The ORB points moved (:func:`~torchslam.registration.rolling.features_at_stamp`; the
+        features as read kept in ``features_as_read``); the depth samples of
+        :meth:`_with_depth` are moved as they are drawn."""
+        feats = self.features(frame)
+        frame.features_as_read = feats
+        frame.features = features_at_stamp(feats, twist, self.camera.height, self.readout)
+        frame.moved = twist
+
     @property
     def uses_keyframe_depth(self) -> bool:
         return self.cfg.depth_refine_points > 0
@@ -201,9 +226,15 @@ class SparseFrontend(TrackingFrontend):
         if self._pixel_rays is None:  # a distorted camera's are the front-end's; a pinhole camera's made once
             self._pixel_rays = self.rays if self.rays is not None else undistorted_rays(self.camera, device=frame.depth.device)
         pts = sample_depth_points(frame.depth, self._pixel_rays, n, self.cfg.sparse.min_depth, self.cfg.sparse.max_depth)
+        if frame.moved is not None:  # the frame's rolling shutter: its depth samples to its stamp, as its ORB points
+            cam = self.camera
+            rows = cam.fy * pts[:, 1] / pts[:, 2] + cam.cy
+            pts = correct_rows(pts[None], rows[None], torch.ones_like(rows, dtype=torch.bool)[None],
+                               frame.moved.to(pts)[None], cam.height, self.readout)[0]
         T2, used = refine_with_depth(T, keyframe.depth, self.camera, pts, res.points_i[0], res.points_j[0], res.inliers[0],
                                      self.cfg.depth_refine_iterations, self.cfg.dense.depth_edge_tolerance,
-                                     self.cfg.dense.correspondence_threshold, self.cfg.dense.sigma_floor_geometric)
+                                     self.cfg.dense.correspondence_threshold, self.cfg.dense.sigma_floor_geometric,
+                                     twist_i=keyframe.twist, readout=self.readout)
         self.counts["depth_refined"] += used > 0
         return T2
 
@@ -221,6 +252,11 @@ class DenseFrontend(TrackingFrontend):
         frame.dense = prepare_dense_frame(rgb[None], depth[None], self.camera, self.cfg.dense)
         lap("dense_preparation")
         return frame
+
+    def to_stamp(self, frame: PreparedFrame, twist: Tensor) -> None:
+        """The pyramid's points moved (:func:`~torchslam.registration.rolling.dense_frame_at_stamp`)."""
+        frame.dense = dense_frame_at_stamp(frame.dense, twist.to(frame.dense.levels[0].points.dtype), self.readout)
+        frame.moved = twist
 
     def register(self, keyframe: RegistrationTarget, frame: PreparedFrame, T_guess: Tensor) -> Registration:
         res = register_dense_frames(keyframe.dense, frame.dense, T_guess[None], self.cfg.dense)
@@ -248,6 +284,7 @@ def frontend_class(kind: Frontend) -> type[TrackingFrontend]:
     return _FRONTENDS[kind]
 
 
-def make_frontend(cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator) -> TrackingFrontend:
-    """The front-end ``cfg.frontend`` names, for one sequence."""
-    return frontend_class(cfg.frontend)(cfg, camera, rays, generator)
+def make_frontend(cfg: GCSlamConfig, camera: PinholeCamera, rays: Tensor | None, generator: torch.Generator,
+                  readout: float = 0.0) -> TrackingFrontend:
+    """The front-end ``cfg.frontend`` names, for one sequence (``readout``: its rolling shutter, seconds)."""
+    return frontend_class(cfg.frontend)(cfg, camera, rays, generator, readout)

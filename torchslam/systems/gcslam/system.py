@@ -65,7 +65,7 @@ from ...geometry import (
     undistorted_rays,
 )
 from ...registration.dense import DenseFrame, DenseImages, dense_images
-from ...registration.rolling import dense_frame_at_stamp, dense_images_at_stamp
+from ...registration.rolling import dense_images_at_stamp, features_at_stamp
 from ...registration.sparse import FrameFeatures, SparseResult, register_sparse_batch
 from ...stamps import STAMP_TOLERANCE_S
 from ..base import AheadResults, StepReport, SystemOutput, add_stage_ms
@@ -73,7 +73,7 @@ from ..framelog import FrameLog, voxel_downsample
 from ..memory import DENSE_PAIR_BYTES_PER_WORKING_PIXEL
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
-from .config import GCSlamConfig
+from .config import Frontend, GCSlamConfig
 from .frontend import PreparedFrame, Registration, TrackingFrontend, dense_working_pixels, frontend_class, make_frontend
 from .optimizer import Anchor, KeyframeEvent, Optimizer, ProcessWorker, Worker, make_worker
 
@@ -112,7 +112,8 @@ class _TrackKeyframe:
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
     depth: Tensor | None = None  # (1, H, W) depth of the current keyframe (sparse front-end's depth refinement); None for older ones
-    at_stamp: bool = False  # readout_time: its images were resampled to its stamp (frames registered to it are moved alike)
+    at_stamp: bool = False  # readout_time: its images (dense) or ORB points (sparse) were moved to its stamp (frames registered to it are moved alike)
+    twist: Tensor | None = None  # ... the motion they were moved with
 
 
 class GCSlam:
@@ -168,7 +169,7 @@ class GCSlam:
         self.stage_ms: dict[str, float] = {}
         self.generator = torch.Generator().manual_seed(cfg.sparse.seed)
         self._check_generator = torch.Generator().manual_seed(cfg.sparse.seed)
-        self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator)
+        self.frontend: TrackingFrontend = make_frontend(cfg, self.camera, self.rays, self.generator, self.readout)
         self._last_T_kf = torch.eye(4, dtype=torch.float64, device=self.device)
         # The last tracked step's motion (``motion_prior``): (6,) twist per second in the frame's
         # own coordinates and the time of that frame; None when the last frame was not tracked.
@@ -413,15 +414,15 @@ class GCSlam:
         return again
 
     def _to_stamp(self, view: PreparedFrame, t: float) -> None:
-        """Move the dense view's pixels to the frame's stamp (``readout_time``) with the predicted
-        motion: the last tracked step's twist (the motion prior's; on synthetic hand-held and orbit
-        sequences with a planted 30 ms readout, tuning seeds, it did better than the mean of the
-        last three steps: 0.133 against 0.185 cm, seeds 0-2 hand-held), where the prior spans the
-        gap to the last tracked frame."""
+        """Move the view's points (dense pyramid or ORB) to the frame's stamp (``readout_time``)
+        with the predicted motion: the last tracked step's twist (the motion prior's; on synthetic
+        hand-held and orbit sequences with a planted 30 ms readout, tuning seeds, it did better
+        than the mean of the last three steps: 0.133 against 0.185 cm, seeds 0-2 hand-held,
+        dense), where the prior spans the gap to the last tracked frame."""
         v, t0 = self._velocity, self._last_time
-        if view.dense is None or v is None or t0 is None or not self._within_prior_gap(t - t0):
+        if v is None or t0 is None or not self._within_prior_gap(t - t0):
             return
-        view.dense = dense_frame_at_stamp(view.dense, v.to(view.dense.levels[0].points.dtype), self.readout)
+        self.frontend.to_stamp(view, v)
         view.twist = v
         self.rolling_shutter["frames"] += 1
 
@@ -528,11 +529,16 @@ class GCSlam:
         cfg = self.cfg
         if self._held is not None:
             self._release_held()
-        at_stamp = self.readout > 0 and view.dense is not None and view.twist is not None
-        if at_stamp:
+        at_stamp = self.readout > 0 and view.twist is not None
+        if at_stamp and view.dense is not None:
             # Registered against from now on: its images at the stamp, not only its points.
             view.dense = self._keyframe_at_stamp(view.dense, view.twist).pyramid()
         feats = self.frontend.features(view)
+        sparse_at_stamp = self.readout > 0 and self.frontend.kind is Frontend.SPARSE
+        if sparse_at_stamp:
+            feats = view.features_as_read or feats  # moved again below with the motion tracked at the frame
+            if at_stamp:
+                feats = self._features_at_stamp(feats, view.twist)
         rgb, depth = view.rgb, view.depth
         kid = len(self.keyframes)
         H, W = depth.shape[-2:]
@@ -555,19 +561,22 @@ class GCSlam:
             self.keyframes[-1].depth = None
         self.keyframes.append(
             _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors,
-                           depth if self.frontend.uses_keyframe_depth else None, at_stamp)
+                           depth if self.frontend.uses_keyframe_depth else None, at_stamp,
+                           view.twist if at_stamp else None)
         )
         images = None
         if cfg.dense_pairs:
             # What the optimiser registers this keyframe's pairs densely with (the dense
             # front-end's pyramid has them already).
             images = view.dense.images() if view.dense is not None else dense_images(view.rgb[None], view.depth[None], self.camera, cfg.dense)
+            if at_stamp and view.dense is None:
+                images = self._images_at_stamp(images, view.twist)
         # The pair to the reference is ORB-registered with the sparse front-end, and after a relocalisation.
         refine = images is not None and reference is not None and (relocalized or view.dense is None)
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote,
                             images, refine)
-        if self.readout > 0 and view.dense is not None and not at_stamp:
+        if self.readout > 0 and not at_stamp:
             self._held = ev  # no motion to resample it with yet: the next frame's (_release_held)
         else:
             self._submit(ev)
@@ -599,15 +608,29 @@ class GCSlam:
         v = self._velocity
         if v is not None and kf.dense is not None:
             images = self._keyframe_at_stamp(kf.dense, v)
-            kf.dense, kf.at_stamp = images.pyramid(), True
+            kf.dense, kf.at_stamp, kf.twist = images.pyramid(), True, v
             if ev.images is not None:
                 ev = replace(ev, images=images)
+        elif v is not None and self.frontend.kind is Frontend.SPARSE:
+            kf.features, kf.at_stamp, kf.twist = self._features_at_stamp(kf.features, v), True, v
+            ev = replace(ev, features=kf.features)
+            if ev.images is not None:
+                ev = replace(ev, images=self._images_at_stamp(ev.images, v))
         self._submit(ev)
 
     def _keyframe_at_stamp(self, dense: DenseFrame, twist: Tensor) -> DenseImages:
         """A keyframe's working images resampled to its stamp with ``twist`` (``readout_time``), counted."""
         self.rolling_shutter["keyframes"] += 1
         return dense_images_at_stamp(dense.images(), twist.to(dense.levels[0].grey.dtype), self.readout)
+
+    def _features_at_stamp(self, feats: FrameFeatures, twist: Tensor) -> FrameFeatures:
+        """A sparse keyframe's ORB points moved to its stamp with ``twist`` (``readout_time``), counted."""
+        self.rolling_shutter["keyframes"] += 1
+        return features_at_stamp(feats, twist, self.camera.height, self.readout)
+
+    def _images_at_stamp(self, images: DenseImages, twist: Tensor) -> DenseImages:
+        """A sparse keyframe's working images for its dense pairs resampled to its stamp with ``twist``."""
+        return dense_images_at_stamp(images, twist.to(images.grey.dtype), self.readout)
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
