@@ -3,7 +3,7 @@
 Each case runs ``torchslam run --system gcslam`` in a fresh process per front-end and setting and
 reads its ``metrics.json``: the shipped sequences, their there-and-back stand-ins for long
 revisiting sequences (``scripts/make_revisit.py``), every n-th frame of them (faster motion,
-``data.stride``) and synthetic sequences. Each case carries its split: ``tuning`` (fr1/xyz,
+``data.stride``; ``--strides`` sets them for every real sequence) and synthetic sequences. Each case carries its split: ``tuning`` (fr1/xyz,
 7-Scenes, synthetic seeds 0-4) or ``held-out`` (HoloLens, synthetic seeds 100-104), so that a
 default chosen on the first can be judged on the second.
 
@@ -34,8 +34,9 @@ SYNTHETIC = [(0, "handheld"), (1, "translate"), (2, "orbit"), (3, "loop"), (4, "
              (100, "handheld"), (101, "translate"), (102, "orbit"), (103, "loop"), (104, "handheld")]
 
 
-def cases(root: Path, revisit_root: Path | None, groups: set[str]) -> list[dict]:
-    """Every case: its name, split, the folder (or ``synthetic``) and its extra ``--set`` pairs."""
+def cases(root: Path, revisit_root: Path | None, groups: set[str], strides: tuple[int, ...] | None = None) -> list[dict]:
+    """Every case: its name, split, the folder (or ``synthetic``) and its extra ``--set`` pairs
+    (``strides``: every real sequence's, else each one's own ``STRIDES``)."""
     out = []
     for name, split in REAL:
         if not (root / name / "rgb.txt").is_file():
@@ -45,7 +46,7 @@ def cases(root: Path, revisit_root: Path | None, groups: set[str]) -> list[dict]
         if revisit_root is not None:
             out.append(dict(name=f"{name}-there-and-back", split=split, data=str(revisit_root / f"{name}_palindrome"), sets=[],
                             kind="there-and-back"))
-        for s in STRIDES[name]:
+        for s in strides or STRIDES[name]:
             out.append(dict(name=f"{name}/{s}", split=split, data=str(root / name), sets=[f"data.stride={s}"], kind="stride"))
     for seed, trajectory in SYNTHETIC:
         split = "tuning" if seed < 100 else "held-out"
@@ -97,8 +98,15 @@ def main() -> None:
     ap.add_argument("--groups", default="shipped,there-and-back,stride,synthetic")
     ap.add_argument("--data", type=Path, default=data_root())
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--strides", default="", help="comma-separated strides for every real sequence (default: each one's own)")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_gcslam_settings")
     args = ap.parse_args()
+    try:
+        strides = tuple(int(s) for s in args.strides.split(",") if s) or None
+    except ValueError:
+        ap.error(f"--strides {args.strides}: expected comma-separated whole numbers, e.g. 2,4")
+    if strides and min(strides) < 1:
+        ap.error(f"--strides {args.strides}: expected strides of at least 1")
     settings = args.settings.split(",")
     frontends = args.frontends.split(",")
     groups = set(args.groups.split(","))
@@ -111,7 +119,7 @@ def main() -> None:
                             "--out", str(tmp / "revisit"), *names], check=True, capture_output=True)
             revisit = tmp / "revisit"
         rows = []
-        for case in cases(args.data, revisit, groups):
+        for case in cases(args.data, revisit, groups, strides):
             row = dict(name=case["name"], split=case["split"], kind=case["kind"], runs={})
             for fe in frontends:
                 row["runs"][fe] = {}

@@ -210,6 +210,11 @@ def test_gcslam_sparse_moves_orb_points_of_frames_and_keyframes():
         raw = frame_features(seq[kf.frame_index].rgb, seq[kf.frame_index].depth, seq.camera)
         assert torch.equal(ev.features.keypoints, raw.keypoints) and ev.features.points is kf.features.points
         assert float((ev.features.points - raw.points)[raw.valid].norm(dim=-1).max()) > 1e-4
+        # Its dense pairs' images go as read with their motion; the optimiser resamples them.
+        assert ev.images is not None and ev.images_motion is not None and ev.images_motion[1] == 0.03
+        stored = system.optimizer.images[ev.kf]
+        assert torch.equal(stored.depth, dense_images_at_stamp(ev.images, ev.images_motion[0].float(), 0.03).depth)
+        assert float((stored.depth - ev.images.depth).abs().max()) > 1e-4
     # auto (the default) takes the planted readout with the sparse front-end too.
     auto = run_sequence(GCSlam(config_from_dict(GCSlamConfig, base)), seq).output
     assert auto.metrics["rolling_shutter"] == {**rs, "setting": "auto", "source": "synthetic"}

@@ -43,6 +43,7 @@ from ...errors import TorchSlamError
 from ...fastgo import FastGOConfig, FastGOProblem, PairStats, accept_loop_closures, optimize
 from ...loop import MILDDatabase
 from ...registration.dense import DenseFrame, DenseImages, register_dense_frames
+from ...registration.rolling import dense_images_at_stamp
 from ...registration.sparse import FrameFeatures, register_sparse_batch
 from ...threads import name_os_thread
 from .. import pickling as messages
@@ -77,6 +78,9 @@ class KeyframeEvent:
     promoted: bool = False  # made from the previous frame of a weak one (``keyframe_weak_ratio``)
     images: DenseImages | None = None  # working images of the keyframe where pairs are registered densely (``keyframe_pairs``)
     refine: bool = False  # its odometry pair came from ORB features and is registered again densely
+    # readout_time: ``images`` are as read and are resampled to the keyframe's stamp here with this
+    # (twist (6,), readout seconds) before any use (the sparse front-end's keyframes: off the tracker's path)
+    images_motion: tuple[Tensor, float] | None = None
 
 
 # Keyframe pyramids kept built for dense pair registration (about 6 MB each at 320x240); the
@@ -140,7 +144,11 @@ class Optimizer:
                 T0 = self.T_wk[ev.anchor.kf] @ ev.anchor.T_kf.to(torch.float64)
             self.T_wk.append(T0)
         self.features.append(ev.features)
-        self.images.append(ev.images if cfg.dense_pairs else None)
+        images = ev.images if cfg.dense_pairs else None
+        if images is not None and ev.images_motion is not None:
+            twist, readout = ev.images_motion
+            images = dense_images_at_stamp(images, twist.to(images.grey.dtype), readout)
+        self.images.append(images)
         if ev.reference is not None:
             T_ref_kf, stats = ev.T_ref_kf.to(torch.float64), ev.stats.to("cpu", torch.float64)
             if ev.refine:

@@ -569,13 +569,13 @@ class GCSlam:
             # What the optimiser registers this keyframe's pairs densely with (the dense
             # front-end's pyramid has them already).
             images = view.dense.images() if view.dense is not None else dense_images(view.rgb[None], view.depth[None], self.camera, cfg.dense)
-            if at_stamp and view.dense is None:
-                images = self._images_at_stamp(images, view.twist)
         # The pair to the reference is ORB-registered with the sparse front-end, and after a relocalisation.
         refine = images is not None and reference is not None and (relocalized or view.dense is None)
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote,
-                            images, refine)
+                            images, refine,
+                            # The sparse front-end's pair images are resampled by the optimiser, off the tracking path.
+                            (view.twist.cpu(), self.readout) if at_stamp and images is not None and view.dense is None else None)
         if self.readout > 0 and not at_stamp:
             self._held = ev  # no motion to resample it with yet: the next frame's (_release_held)
         else:
@@ -615,7 +615,7 @@ class GCSlam:
             kf.features, kf.at_stamp, kf.twist = self._features_at_stamp(kf.features, v), True, v
             ev = replace(ev, features=kf.features)
             if ev.images is not None:
-                ev = replace(ev, images=self._images_at_stamp(ev.images, v))
+                ev = replace(ev, images_motion=(v.cpu(), self.readout))
         self._submit(ev)
 
     def _keyframe_at_stamp(self, dense: DenseFrame, twist: Tensor) -> DenseImages:
@@ -627,10 +627,6 @@ class GCSlam:
         """A sparse keyframe's ORB points moved to its stamp with ``twist`` (``readout_time``), counted."""
         self.rolling_shutter["keyframes"] += 1
         return features_at_stamp(feats, twist, self.camera.height, self.readout)
-
-    def _images_at_stamp(self, images: DenseImages, twist: Tensor) -> DenseImages:
-        """A sparse keyframe's working images for its dense pairs resampled to its stamp with ``twist``."""
-        return dense_images_at_stamp(images, twist.to(images.grey.dtype), self.readout)
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
