@@ -81,7 +81,9 @@ class RegistrationTarget(Protocol):
     features: FrameFeatures
     dense: DenseFrame | None
     depth: Tensor | None
-    twist: Tensor | None  # the motion its points or images were moved to its stamp with (readout_time), else None
+    # Optional: the motion its points or images were moved to its stamp with (readout_time); a
+    # target without it, or with None, is taken as read.
+    twist: Tensor | None
 
 
 @dataclass(frozen=True)
@@ -234,7 +236,7 @@ class SparseFrontend(TrackingFrontend):
         T2, used = refine_with_depth(T, keyframe.depth, self.camera, pts, res.points_i[0], res.points_j[0], res.inliers[0],
                                      self.cfg.depth_refine_iterations, self.cfg.dense.depth_edge_tolerance,
                                      self.cfg.dense.correspondence_threshold, self.cfg.dense.sigma_floor_geometric,
-                                     twist_i=keyframe.twist, readout=self.readout)
+                                     twist_i=getattr(keyframe, "twist", None), readout=self.readout)
         self.counts["depth_refined"] += used > 0
         return T2
 
