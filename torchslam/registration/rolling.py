@@ -100,8 +100,7 @@ def correct_points(points: Tensor, valid: Tensor, twist: Tensor, width: int, ful
     delta = row_offsets(h, full_height, readout, points.dtype, points.device)  # (h,)
     if _numpy_ok(points, valid, twist):
         return _correct_points_numpy(points, valid, twist, delta, width)
-    step = _motion(points, twist.to(dtype=points.dtype, device=points.device)) * delta.repeat_interleave(width)[None, :, None]
-    return points + step * valid[..., None].to(points.dtype)
+    return _moved(points, valid, twist, delta.repeat_interleave(width)[None])
 
 
 def correct_rows(points: Tensor, rows: Tensor, valid: Tensor, twist: Tensor, full_height: int, readout: float) -> Tensor:
@@ -127,9 +126,14 @@ def correct_rows(points: Tensor, rows: Tensor, valid: Tensor, twist: Tensor, ful
     readout = check_readout(readout, "readout")
     if readout == 0.0:
         return points
-    delta = readout * (rows.to(points.dtype) - (full_height - 1) / 2) / full_height
-    step = _motion(points, twist.to(dtype=points.dtype, device=points.device)) * (delta * valid.to(points.dtype))[..., None]
-    return points + step
+    return _moved(points, valid, twist, readout * (rows.to(points.dtype) - (full_height - 1) / 2) / full_height)
+
+
+def _moved(points: Tensor, valid: Tensor, twist: Tensor, delta: Tensor) -> Tensor:
+    """(B, N, 3) ``X + delta (w x X + v)`` of valid points, the invalid ones as they are; ``delta``
+    (B, N) or (1, N) seconds from each point's row to the stamp."""
+    step = _motion(points, twist.to(dtype=points.dtype, device=points.device))
+    return points + step * (delta * valid.to(points.dtype))[..., None]
 
 
 def features_at_stamp(features: FrameFeatures, twist: Tensor, full_height: int, readout: float) -> FrameFeatures:

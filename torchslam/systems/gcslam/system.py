@@ -64,7 +64,7 @@ from ...geometry import (
     PinholeCamera, backproject_depth, project_points, se3_exp, se3_exp_numpy, se3_inverse, se3_inverse_numpy, se3_log, se3_log_numpy,
     undistorted_rays,
 )
-from ...registration.dense import DenseFrame, DenseImages, dense_images
+from ...registration.dense import DenseFrame, dense_images
 from ...registration.rolling import dense_images_at_stamp, features_at_stamp
 from ...registration.sparse import FrameFeatures, SparseResult, register_sparse_batch
 from ...stamps import STAMP_TOLERANCE_S
@@ -73,7 +73,7 @@ from ..framelog import FrameLog, voxel_downsample
 from ..memory import DENSE_PAIR_BYTES_PER_WORKING_PIXEL
 from ..monitor import Monitor
 from ..registry import LockstepSpec, SystemSpec
-from .config import Frontend, GCSlamConfig
+from .config import GCSlamConfig
 from .frontend import PreparedFrame, Registration, TrackingFrontend, dense_working_pixels, frontend_class, make_frontend
 from .optimizer import Anchor, KeyframeEvent, Optimizer, ProcessWorker, Worker, make_worker
 
@@ -112,8 +112,13 @@ class _TrackKeyframe:
     map_points: Tensor  # (P, 3) float32 keyframe-frame points of map.ply
     map_colors: Tensor  # (P, 3) float32
     depth: Tensor | None = None  # (1, H, W) depth of the current keyframe (sparse front-end's depth refinement); None for older ones
-    at_stamp: bool = False  # readout_time: its images (dense) or ORB points (sparse) were moved to its stamp (frames registered to it are moved alike)
-    twist: Tensor | None = None  # ... the motion they were moved with
+    # readout_time: the motion its images (dense) or ORB points (sparse) were moved to its stamp
+    # with; None while as read (frames registered to it are moved only where it was)
+    twist: Tensor | None = None
+
+    @property
+    def at_stamp(self) -> bool:
+        return self.twist is not None
 
 
 class GCSlam:
@@ -144,7 +149,7 @@ class GCSlam:
         cfg = self.cfg
         self.sequence_name = sequence.name
         self.camera: PinholeCamera = sequence.camera
-        # readout_time, auto resolved: the sequence's own rolling shutter with the dense front-end.
+        # readout_time, auto resolved: the sequence's own rolling shutter.
         self.readout, self.readout_source = cfg.readout_for(sequence)
         self.intrinsics = self.camera.as_tensor(torch.float64, self.device)[None]
         self.rays = undistorted_rays(self.camera, torch.float64, self.device) if self.camera.has_distortion else None
@@ -529,16 +534,8 @@ class GCSlam:
         cfg = self.cfg
         if self._held is not None:
             self._release_held()
-        at_stamp = self.readout > 0 and view.twist is not None
-        if at_stamp and view.dense is not None:
-            # Registered against from now on: its images at the stamp, not only its points.
-            view.dense = self._keyframe_at_stamp(view.dense, view.twist).pyramid()
-        feats = self.frontend.features(view)
-        sparse_at_stamp = self.readout > 0 and self.frontend.kind is Frontend.SPARSE
-        if sparse_at_stamp:
-            feats = view.features_as_read or feats  # moved again below with the motion tracked at the frame
-            if at_stamp:
-                feats = self._features_at_stamp(feats, view.twist)
+        # As read; moved to its stamp below (readout_time) with the motion tracked at the frame.
+        feats = view.features_as_read if view.features_as_read is not None else self.frontend.features(view)
         rgb, depth = view.rgb, view.depth
         kid = len(self.keyframes)
         H, W = depth.shape[-2:]
@@ -561,8 +558,7 @@ class GCSlam:
             self.keyframes[-1].depth = None
         self.keyframes.append(
             _TrackKeyframe(kid, frame.index, feats, sample_points, pix, view.dense, map_points.float(), colors,
-                           depth if self.frontend.uses_keyframe_depth else None, at_stamp,
-                           view.twist if at_stamp else None)
+                           depth if self.frontend.uses_keyframe_depth else None)
         )
         images = None
         if cfg.dense_pairs:
@@ -573,13 +569,11 @@ class GCSlam:
         refine = images is not None and reference is not None and (relocalized or view.dense is None)
         ev = KeyframeEvent(kid, reference, None if T_ref is None else T_ref.to(torch.float64).cpu(),
                             None if stats is None else stats.to("cpu", torch.float64), feats, anchor, frame.index, promote,
-                            images, refine,
-                            # The sparse front-end's pair images are resampled by the optimiser, off the tracking path.
-                            (view.twist.cpu(), self.readout) if at_stamp and images is not None and view.dense is None else None)
-        if self.readout > 0 and not at_stamp:
-            self._held = ev  # no motion to resample it with yet: the next frame's (_release_held)
+                            images, refine)
+        if self.readout > 0 and view.twist is None:
+            self._held = ev  # no motion to move it with yet: the next frame's (_release_held)
         else:
-            self._submit(ev)
+            self._submit(ev if self.readout == 0 else self._keyframe_to_stamp(ev, view.twist))
         self.frames.link(kid, reference, T_ref)
         if promote:
             self.frames.rebase_last(kid)
@@ -599,34 +593,29 @@ class GCSlam:
             self._inline_s += time.perf_counter() - t_submit
 
     def _release_held(self) -> None:
-        """Hand the optimiser the keyframe held for a motion (``readout_time``), its images first
-        resampled to its stamp with the motion tracked since (the step to the frame after it),
-        where there is one: the tracker then registers later frames, moved alike, against those
-        images, and the optimiser registers its pairs and loops with them."""
+        """Hand the optimiser the keyframe held for a motion (``readout_time``), first moved to its
+        stamp with the motion tracked since (the step to the frame after it), where there is one:
+        the tracker then registers later frames, moved alike, against it, and the optimiser
+        registers its pairs and loops with it."""
         ev, self._held = self._held, None
-        kf = self.keyframes[ev.kf]
         v = self._velocity
-        if v is not None and kf.dense is not None:
-            images = self._keyframe_at_stamp(kf.dense, v)
-            kf.dense, kf.at_stamp, kf.twist = images.pyramid(), True, v
-            if ev.images is not None:
-                ev = replace(ev, images=images)
-        elif v is not None and self.frontend.kind is Frontend.SPARSE:
-            kf.features, kf.at_stamp, kf.twist = self._features_at_stamp(kf.features, v), True, v
-            ev = replace(ev, features=kf.features)
-            if ev.images is not None:
-                ev = replace(ev, images_motion=(v.cpu(), self.readout))
-        self._submit(ev)
+        self._submit(ev if v is None else self._keyframe_to_stamp(ev, v))
 
-    def _keyframe_at_stamp(self, dense: DenseFrame, twist: Tensor) -> DenseImages:
-        """A keyframe's working images resampled to its stamp with ``twist`` (``readout_time``), counted."""
+    def _keyframe_to_stamp(self, ev: KeyframeEvent, twist: Tensor) -> KeyframeEvent:
+        """Move the current keyframe ``ev.kf`` to its stamp with ``twist`` (``readout_time``) and
+        return the event the optimiser gets. The dense front-end's keyframe has its working images
+        resampled and its pyramid rebuilt (what tracking registers against, and its pairs'
+        images); the sparse one's ORB points are moved, and its pairs' images go as read with
+        their motion, resampled by the optimiser, off the tracking path."""
+        kf = self.keyframes[ev.kf]
+        kf.twist = twist
         self.rolling_shutter["keyframes"] += 1
-        return dense_images_at_stamp(dense.images(), twist.to(dense.levels[0].grey.dtype), self.readout)
-
-    def _features_at_stamp(self, feats: FrameFeatures, twist: Tensor) -> FrameFeatures:
-        """A sparse keyframe's ORB points moved to its stamp with ``twist`` (``readout_time``), counted."""
-        self.rolling_shutter["keyframes"] += 1
-        return features_at_stamp(feats, twist, self.camera.height, self.readout)
+        if kf.dense is not None:
+            images = dense_images_at_stamp(kf.dense.images(), twist.to(kf.dense.levels[0].grey.dtype), self.readout)
+            kf.dense = images.pyramid()
+            return ev if ev.images is None else replace(ev, images=images)
+        kf.features = features_at_stamp(kf.features, twist, self.camera.height, self.readout)
+        return replace(ev, features=kf.features, images_motion=None if ev.images is None else (twist.cpu(), self.readout))
 
     # ------------------------------------------------------------------ monitoring
     def estimate_so_far(self) -> Trajectory | None:
