@@ -11,11 +11,12 @@ about an hour on the 2-core development machine):
     eval_sequences.py --with-nislam                                               -> eval_sequences.json, .md
     bench_loops.py --only long --rules chi2 --long-seed S  (S = 0, 100)           -> bench_loops_long_seed{S}.json
     bench_checkouts.py --other <this checkout> --rounds 3 [--busy 1]              -> bench_checkouts_{idle,busy}.json
+    bench_cpu.py --system S [--set ...]  (three runs, CPU_RUNS)                   -> bench_cpu_{nislam,gcslam_sparse,gcslam_dense}.json
 
 ``bench_checkouts`` compares this checkout with itself: two alternating runs of the same code, so
 their spread is the machine's noise. The tables printed are the README's: NI-SLAM per sequence and
-attitude, the long loops, GC-SLAM's accuracy, its per-stage times and the frame rates idle and
-busy (``tests/scripts/test_results_tables.py`` checks that the README shows the stored folder's).
+attitude, the long loops, GC-SLAM's accuracy, its per-stage times, the frame rates idle and
+busy and the CPU per frame thread by thread (``tests/scripts/test_results_tables.py`` checks that the README shows the stored folder's).
 A table whose file is missing is left out, saying so.
 """
 
@@ -39,6 +40,18 @@ STAGES = [  # (column, stage_ms key) of GC-SLAM's per-stage table
     ("loop detection", "optimizer/loop_detection"), ("loop registration", "optimizer/loop_registration"),
     ("FastGO", "optimizer/fastgo"),
 ]
+# The CPU table's rows (``bench_cpu.py``): result file, the run's name, its ``--set`` values, and
+# what its frame-preparing thread or process does.
+CPU_RUNS = [
+    ("bench_cpu_nislam.json", "NI-SLAM, simulated attitude", ["--system", "nislam", "--set", "attitude=simulated"],
+     "attitude, back-projection"),
+    ("bench_cpu_gcslam_sparse.json", "GC-SLAM sparse", ["--system", "gcslam"], "ORB, in a child process"),
+    ("bench_cpu_gcslam_dense.json", "GC-SLAM dense", ["--system", "gcslam", "--set", "frontend=dense"],
+     "pyramids, in a child process"),
+]
+# bench_cpu.py's thread names, grouped into the CPU table's columns.
+CPU_GROUPS = {"tracking": ("main (tracking)",), "preparing": ("tslam-prepare", "tslam-ahead"), "decoding": ("tslam-decode",),
+              "optimisation": ("tslam-optimizer",)}
 
 
 def display(name: str) -> str:
@@ -177,6 +190,28 @@ def speed_table(idle: dict, busy: dict) -> str:
     return "\n".join(out)
 
 
+def cpu_table(runs: list[tuple[str, str, dict]]) -> str:
+    """CPU ms per frame thread by thread (``bench_cpu_*.json``): ``(name, what prepares, result)`` per row.
+
+    Columns group ``bench_cpu.py``'s thread names (``CPU_GROUPS``); "all" is the median over rounds
+    of every thread's sum, helpers included, so the columns need not add up to it."""
+    out = ["| run | tracking (main thread) | preparing frames | decoding | optimisation process | all | wall time per frame |",
+           "|---|---:|---:|---:|---:|---:|---:|"]
+    for name, prepares, r in runs:
+        med = r["median_ms_per_frame"]
+
+        def group(key: str) -> float | None:
+            found = [med[n] for n in CPU_GROUPS[key] if n in med]
+            return sum(found) if found else None
+
+        prep, opt = group("preparing"), group("optimisation")
+        cells = [f"{group('tracking') or 0.0:.1f}", "–" if prep is None else f"{prep:.1f} ({prepares})",
+                 f"{group('decoding') or 0.0:.1f}", "–" if opt is None else f"{opt:.1f}",
+                 f"{r['total_ms_per_frame']:.1f}", f"{r['median_wall_ms_per_frame']:.1f}"]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def tables(folder: Path) -> dict[str, str]:
     """Every table the files in ``folder`` give, by name; a missing file leaves its table out."""
     def load(name: str) -> dict | None:
@@ -196,6 +231,9 @@ def tables(folder: Path) -> dict[str, str]:
     idle, busy = load("bench_checkouts_idle.json"), load("bench_checkouts_busy.json")
     if idle is not None and busy is not None:
         out["speed"] = speed_table(idle, busy)
+    cpu = [(name, prepares, r) for file, name, _, prepares in CPU_RUNS if (r := load(file)) is not None]
+    if cpu:
+        out["cpu"] = cpu_table(cpu)
     return out
 
 
@@ -215,6 +253,7 @@ def run_all(folder: Path) -> None:
         [py, HERE / "bench_checkouts.py", "--other", root, "--systems", "nislam,gcslam-sparse,gcslam-dense",
          "--sequences", "tum_fr1_xyz,7scenes_redkitchen,hololens_dvmvs", "--rounds", "3", "--busy", "1",
          "--out", folder / "bench_checkouts_busy.json"],
+        *[[py, HERE / "bench_cpu.py", *args, "--out", folder / file] for file, _, args, _ in CPU_RUNS],
     ]
     for cmd in commands:
         print("running:", " ".join(str(c) for c in cmd[1:]), flush=True)
@@ -231,7 +270,7 @@ def main() -> None:
     elif not args.folder.is_dir():
         ap.error(f"{args.folder}: no such folder (use --run to create it)")
     found = tables(args.folder)
-    for name in ("nislam", "loops", "gcslam", "stages", "speed"):
+    for name in ("nislam", "loops", "gcslam", "stages", "speed", "cpu"):
         print(f"\n<!-- {name} -->\n{found[name]}" if name in found else f"\n<!-- {name}: no result file in {args.folder} -->")
 
 

@@ -16,7 +16,7 @@ STORED = REPO_ROOT / "scripts" / "results" / "defaults_2026-12-07"
 def test_the_readme_shows_the_stored_results_tables():
     readme = (REPO_ROOT / "README.md").read_text()
     found = rt.tables(STORED)
-    assert set(found) == {"nislam", "loops", "gcslam", "stages", "speed"}
+    assert set(found) == {"nislam", "loops", "gcslam", "stages", "speed", "cpu"}
     for name, table in found.items():
         for line in table.splitlines():
             assert line in readme, f"{name}: the README lacks {line!r}"
@@ -81,7 +81,7 @@ def test_run_calls_existing_scripts_with_flags_they_take(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(rt.subprocess, "run", lambda cmd, check: calls.append(cmd))
     rt.run_all(tmp_path / "out")
-    assert len(calls) == 7 and (tmp_path / "out").is_dir()
+    assert len(calls) == 10 and (tmp_path / "out").is_dir()
     for cmd in calls:
         script = Path(cmd[1])
         assert script.parent == REPO_ROOT / "scripts" and script.exists(), cmd
@@ -91,3 +91,15 @@ def test_run_calls_existing_scripts_with_flags_they_take(tmp_path, monkeypatch):
         assert flags and all(f'"{f}"' in source for f in flags), (script.name, [f for f in flags if f'"{f}"' not in source])
         outs = [cmd[i + 1] for i, a in enumerate(cmd) if a == "--out"]
         assert outs and all(o.startswith(str(tmp_path / "out")) for o in outs)
+
+
+def test_cpu_table_groups_threads_and_marks_what_a_run_lacks():
+    def result(med, total, wall):
+        return {"median_ms_per_frame": med, "total_ms_per_frame": total, "median_wall_ms_per_frame": wall}
+    ni = result({"main (tracking)": 20.0, "tslam-prepare": 5.04, "tslam-decode": 3.0, "python": 0.5}, 28.54, 21.0)
+    gc = result({"main (tracking)": 10.0, "tslam-ahead": 4.0, "tslam-decode": 2.0, "tslam-optimizer": 6.0,
+                 "tslam-opt-inbox": 0.2}, 22.2, 12.0)
+    lines = rt.cpu_table([("A", "prep", ni), ("B", "ORB", gc)]).splitlines()
+    # "all" is the runs' own total (helper threads included), not the columns' sum.
+    assert lines[2] == "| A | 20.0 | 5.0 (prep) | 3.0 | – | 28.5 | 21.0 |"
+    assert lines[3] == "| B | 10.0 | 4.0 (ORB) | 2.0 | 6.0 | 22.2 | 12.0 |"
